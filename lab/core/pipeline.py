@@ -1,0 +1,431 @@
+"""Pipelines and sessions: run steps on a state, track history, invalidate what lies downstream.
+
+A :class:`Pipeline` is a module's ordered steps plus the datasets that seed its state and the
+evaluation functions that compare values with ground truth. A :class:`Session` is one pipeline's
+state, its run history and a lock. Every front end (viewer, REST, CLI, grader) runs steps through
+:meth:`Session.run`, so they all behave the same.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import inspect
+import threading
+import time
+import uuid
+import zlib
+from dataclasses import dataclass, field
+from typing import Any, Callable, Iterable
+
+import numpy as np
+
+from lab.core.errors import Cancelled, InvalidValue, LabError, MissingInput, SessionBusy, StepFailed, UnknownName
+from lab.core.step import Control, Progress, StepSpec, _control_from, _docstring_params, describe_step, result_to_values
+from lab.core.values import value_nbytes
+
+
+@dataclass(frozen=True)
+class Loaded:
+    """What a dataset loader returns: the initial ``state`` and, separately, its ``truth`` (may be empty)."""
+
+    state: dict[str, Any]
+    truth: dict[str, Any] = field(default_factory=dict)
+    description: str = ""
+
+
+@dataclass(frozen=True)
+class DatasetSpec:
+    """A named way to seed a session. Its keyword-only parameters are options, like step controls.
+
+    A dataset with ``takes_path`` True loads a user's folder or file, given as option ``path``.
+    """
+
+    name: str
+    loader: Callable[..., Loaded]
+    summary: str
+    options: tuple[Control, ...]
+    takes_path: bool = False
+
+    @classmethod
+    def of(cls, loader: Callable[..., Loaded], *, name: str | None = None) -> DatasetSpec:
+        signature = inspect.signature(loader)
+        hints = __import__("typing").get_type_hints(loader, include_extras=True)
+        doc = inspect.getdoc(loader) or ""
+        described = _docstring_params(doc)
+        options = tuple(_control_from(p.name, hints.get(p.name), p.default, described.get(p.name, ""))
+                        for p in signature.parameters.values() if p.kind == p.KEYWORD_ONLY)
+        return cls(name=name or loader.__name__, loader=loader,
+                   summary=doc.split("\n\n", 1)[0].replace("\n", " "), options=options,
+                   takes_path=any(o.name == "path" for o in options))
+
+    def load(self, options: dict[str, Any] | None = None) -> Loaded:
+        options = dict(options or {})
+        values: dict[str, Any] = {}
+        for option in self.options:
+            if option.name in options:
+                values[option.name] = option.coerce(options.pop(option.name))
+            elif option.required:
+                raise InvalidValue(f"options.{option.name}", f"dataset {self.name!r} needs option {option.name!r}")
+            else:
+                values[option.name] = option.default
+        if options:
+            raise InvalidValue(f"options.{next(iter(options))}",
+                               f"dataset {self.name!r} has no such option; options are {[o.name for o in self.options]}")
+        return self.loader(**values)
+
+    def describe(self) -> dict[str, Any]:
+        return {"name": self.name, "summary": self.summary, "takes_path": self.takes_path,
+                "options": {"type": "object", "properties": {o.name: o.json_schema() for o in self.options},
+                            "additionalProperties": False}}
+
+
+#: ``evaluate(state, truth) -> metrics``, run after a step: compares its outputs with the truth
+#: (``truth`` is empty on real data: return only what can be measured without it, e.g. residuals).
+Evaluation = Callable[[dict[str, Any], dict[str, Any]], dict[str, float]]
+
+
+@dataclass(frozen=True)
+class Pipeline:
+    """A teaching module: ordered steps, datasets (the first is the default) and evaluations."""
+
+    name: str
+    title: str
+    summary: str
+    steps: tuple[StepSpec, ...]
+    datasets: tuple[DatasetSpec, ...]
+    evaluations: dict[str, Evaluation] = field(default_factory=dict)
+
+    @classmethod
+    def build(cls, *, name: str, title: str, summary: str, steps: Iterable[Callable[..., Any]],
+              datasets: Iterable[Callable[..., Loaded]], evaluations: dict[str, Evaluation] | None = None) -> Pipeline:
+        specs = tuple(describe_step(f) for f in steps)
+        names = [s.name for s in specs]
+        if len(set(names)) != len(names):
+            raise TypeError(f"pipeline {name}: duplicate step names {names}")
+        return cls(name=name, title=title, summary=summary, steps=specs,
+                   datasets=tuple(DatasetSpec.of(d) for d in datasets), evaluations=dict(evaluations or {}))
+
+    def step(self, name: str) -> StepSpec:
+        for spec in self.steps:
+            if spec.name == name:
+                return spec
+        raise UnknownName("step", f"module {self.name!r} has no step {name!r}; steps are {[s.name for s in self.steps]}")
+
+    def dataset(self, name: str | None) -> DatasetSpec:
+        if name is None:
+            return self.datasets[0]
+        for spec in self.datasets:
+            if spec.name == name:
+                return spec
+        raise UnknownName("dataset", f"module {self.name!r} has no dataset {name!r}; datasets are {[d.name for d in self.datasets]}")
+
+    def producer(self, value_name: str) -> StepSpec | None:
+        for spec in self.steps:
+            if value_name in spec.writes:
+                return spec
+        return None
+
+    def input_annotation(self, value_name: str) -> Any:
+        """The type a state value must have: from a step that reads it, else one that writes it."""
+        for spec in self.steps:
+            for inp in spec.inputs:
+                if inp.name == value_name:
+                    return inp.annotation
+        for spec in self.steps:
+            for out in spec.outputs:
+                if out.name == value_name and not out.is_metric:
+                    return out.annotation
+        return inspect.Parameter.empty
+
+    def downstream(self, names: Iterable[str]) -> list[StepSpec]:
+        """Steps that read any of ``names``, directly or through other steps, in pipeline order."""
+        dirty = set(names)
+        found: list[StepSpec] = []
+        for spec in self.steps:
+            if dirty.intersection(spec.reads):
+                found.append(spec)
+                dirty.update(spec.writes)
+        return found
+
+    def describe(self) -> dict[str, Any]:
+        return {"name": self.name, "title": self.title, "summary": self.summary,
+                "steps": [s.describe() for s in self.steps],
+                "datasets": [d.describe() for d in self.datasets]}
+
+
+@dataclass(frozen=True)
+class RunRecord:
+    """One entry of a session's history: what ran, with which controls, how long, and its metrics."""
+
+    step: str
+    params: dict[str, Any]
+    seed: int
+    seconds: float
+    metrics: dict[str, Any]
+    status: str  # "ok" | "failed" | "cancelled"
+    error: str = ""
+    warnings: tuple[str, ...] = ()
+    replaced: bool = False
+    started: float = 0.0
+
+    def to_json(self) -> dict[str, Any]:
+        return {"step": self.step, "params": _jsonable(self.params), "seed": self.seed,
+                "seconds": round(self.seconds, 6), "metrics": _jsonable(self.metrics), "status": self.status,
+                "error": self.error, "warnings": list(self.warnings), "replaced": self.replaced,
+                "started": self.started}
+
+
+def _jsonable(value: Any) -> Any:
+    if isinstance(value, dict):
+        return {k: _jsonable(v) for k, v in value.items()}
+    if isinstance(value, (list, tuple)):
+        return [_jsonable(v) for v in value]
+    if isinstance(value, (np.floating, float)):
+        return float(value)
+    if isinstance(value, (np.integer,)):
+        return int(value)
+    if isinstance(value, np.bool_):
+        return bool(value)
+    return value
+
+
+ProgressCallback = Callable[[str, Progress], None]
+
+
+class Session:
+    """One pipeline's state, its history and a lock. Thread-safe: one step runs at a time.
+
+    ``overrides`` maps step names to functions with the same signature (a student's code, for the
+    grader and the viewer's lesson mode); they run in place of the reference step.
+    """
+
+    def __init__(self, pipeline: Pipeline, loaded: Loaded, *, dataset: str, options: dict[str, Any] | None = None,
+                 seed: int = 0, session_id: str | None = None) -> None:
+        self.id = session_id or uuid.uuid4().hex[:12]
+        self.pipeline = pipeline
+        self.dataset = dataset
+        self.options = dict(options or {})
+        self.seed = int(seed)
+        self.state: dict[str, Any] = dict(loaded.state)
+        self.truth: dict[str, Any] = dict(loaded.truth)
+        self.description = loaded.description
+        self.history: list[RunRecord] = []
+        self.metrics: dict[str, dict[str, Any]] = {}
+        self.lock = threading.RLock()
+        self.running: str | None = None
+        self.cancel_event = threading.Event()
+        self.created = time.time()
+        self.last_used = time.time()
+        self.listeners: list[ProgressCallback] = []
+        self.version = 0  # bumped on every change of state, for viewers to notice
+
+    # --- reading -------------------------------------------------------------------------------
+    def get(self, name: str) -> Any:
+        if name not in self.state:
+            producer = self.pipeline.producer(name)
+            hint = f"; run step {producer.name!r} first" if producer else ""
+            raise UnknownName("value", f"session has no value {name!r}{hint}; values are {sorted(self.state)}")
+        return self.state[name]
+
+    def nbytes(self) -> int:
+        return value_nbytes(self.state)
+
+    def step_status(self) -> dict[str, str]:
+        """``done`` (outputs present), ``ready`` (inputs present) or ``blocked`` for every step."""
+        status = {}
+        for spec in self.pipeline.steps:
+            if spec.writes and all(w in self.state for w in spec.writes):
+                status[spec.name] = "done"
+            elif all(i.optional or i.name in self.state for i in spec.inputs):
+                status[spec.name] = "ready"
+            else:
+                status[spec.name] = "blocked"
+        return status
+
+    def summary(self) -> dict[str, Any]:
+        return {"id": self.id, "module": self.pipeline.name, "dataset": self.dataset,
+                "options": _jsonable(self.options), "seed": self.seed, "running": self.running,
+                "values": {name: type(v).__name__ for name, v in sorted(self.state.items())},
+                "steps": self.step_status(), "history": [r.to_json() for r in self.history],
+                "metrics": _jsonable(self.metrics), "has_truth": bool(self.truth), "version": self.version}
+
+    # --- writing -------------------------------------------------------------------------------
+    def put(self, name: str, value: Any) -> list[str]:
+        """Set an input value (an upload) and drop everything computed from the old one."""
+        with self._exclusive():
+            self._invalidate([name])
+            self.state[name] = value
+            self.version += 1
+            return [s.name for s in self.pipeline.downstream([name])]
+
+    def reset(self, step: str | None = None) -> None:
+        """Forget the outputs of ``step`` and everything downstream (all steps when None)."""
+        with self._exclusive():
+            specs = self.pipeline.steps if step is None else [self.pipeline.step(step)]
+            for spec in specs:
+                for name in spec.writes:
+                    self.state.pop(name, None)
+                self.metrics.pop(spec.name, None)
+                self._invalidate(spec.writes)
+            self.version += 1
+
+    def _invalidate(self, names: Iterable[str]) -> None:
+        for spec in self.pipeline.downstream(names):
+            for out in spec.writes:
+                self.state.pop(out, None)
+            self.metrics.pop(spec.name, None)
+
+    def _exclusive(self):
+        if not self.lock.acquire(blocking=False):
+            raise SessionBusy("session", f"step {self.running!r} is running in this session; wait or cancel it")
+        session = self
+
+        class _Release:
+            def __enter__(self):
+                return session
+
+            def __exit__(self, *exc):
+                session.lock.release()
+                session.last_used = time.time()
+                return False
+
+        return _Release()
+
+    def cancel(self) -> bool:
+        """Ask the running long step to stop at its next progress snapshot."""
+        if self.running is None:
+            return False
+        self.cancel_event.set()
+        return True
+
+    def step_seed(self, step: str) -> int:
+        """The seed a step's ``rng`` gets: fixed per (session seed, step), recorded in history."""
+        return int(np.random.SeedSequence([self.seed, zlib.crc32(step.encode())]).generate_state(1)[0])
+
+    def run(self, step: str, params: dict[str, Any] | None = None, *,
+            override: Callable[..., Any] | None = None, on_progress: ProgressCallback | None = None,
+            device: str | None = None) -> RunRecord:
+        """Run one step on the current state and write its outputs back.
+
+        Controls are checked before anything runs; inputs must exist. On failure the state is
+        left exactly as it was and the failure is recorded in history (and raised).
+        """
+        spec = self.pipeline.step(step)
+        controls = spec.coerce_controls(params)
+        with self._exclusive():
+            args = []
+            for inp in spec.inputs:
+                if inp.name in self.state:
+                    args.append(self.state[inp.name])
+                elif inp.optional:
+                    args.append(None)
+                else:
+                    producer = self.pipeline.producer(inp.name)
+                    how = f"run step {producer.name!r} first" if producer else "upload it or pick a dataset that has it"
+                    raise MissingInput(inp.name, f"step {step!r} reads {inp.name!r}, which does not exist yet: {how}")
+            kwargs = dict(controls)
+            seed = self.step_seed(step)
+            if "rng" in spec.runner_args:
+                kwargs["rng"] = np.random.default_rng(seed)
+            if "device" in spec.runner_args:
+                kwargs["device"] = device or default_device()
+            func = override or spec.func
+            self.running = step
+            self.cancel_event.clear()
+            started = time.time()
+            t0 = time.perf_counter()
+            try:
+                result = func(*args, **kwargs)
+                if inspect.isgenerator(result):
+                    result = self._drive(step, result, on_progress)
+                values, metrics = result_to_values(spec, result)
+                warnings = tuple(values.pop("warnings", ()) or ())
+                for name, value in values.items():
+                    _check_output(spec, name, value)
+            except LabError as exc:
+                record = RunRecord(step, controls, seed, time.perf_counter() - t0, {},
+                                   "cancelled" if isinstance(exc, Cancelled) else "failed",
+                                   error=str(exc), replaced=override is not None, started=started)
+                self.history.append(record)
+                raise
+            except Exception as exc:  # a step (or a student's function) failed on this input
+                record = RunRecord(step, controls, seed, time.perf_counter() - t0, {}, "failed",
+                                   error=f"{type(exc).__name__}: {exc}", replaced=override is not None,
+                                   started=started)
+                self.history.append(record)
+                raise StepFailed(step, f"{type(exc).__name__}: {exc}") from exc
+            finally:
+                self.running = None
+            seconds = time.perf_counter() - t0
+            self._invalidate(spec.writes)
+            self.state.update(values)
+            evaluate = self.pipeline.evaluations.get(step)
+            if evaluate is not None:  # runs without truth too (real data): it returns what it can
+                metrics.update({k: _jsonable(v) for k, v in evaluate(self.state, self.truth).items()})
+            self.metrics[step] = metrics
+            record = RunRecord(step, controls, seed, seconds, metrics, "ok", warnings=warnings,
+                               replaced=override is not None, started=started)
+            self.history.append(record)
+            self.version += 1
+            return record
+
+    def _drive(self, step: str, generator, on_progress: ProgressCallback | None) -> Any:
+        """Iterate a generator step, forwarding progress; closing it on cancel cancels the work."""
+        try:
+            while True:
+                try:
+                    progress = next(generator)
+                except StopIteration as stop:
+                    return stop.value
+                if self.cancel_event.is_set():
+                    generator.close()
+                    raise Cancelled(step, "cancelled by the user")
+                if isinstance(progress, Progress):
+                    for listener in [on_progress, *self.listeners]:
+                        if listener is not None:
+                            listener(step, progress)
+        finally:
+            generator.close()
+
+    def run_until(self, step: str, params: dict[str, dict[str, Any]] | None = None, **kwargs) -> list[RunRecord]:
+        """Run every step from the first one not done up to and including ``step``."""
+        target = self.pipeline.step(step)
+        records = []
+        for spec in self.pipeline.steps:
+            if spec.name == target.name or self.step_status()[spec.name] != "done":
+                records.append(self.run(spec.name, (params or {}).get(spec.name), **kwargs))
+            if spec.name == target.name:
+                break
+        return records
+
+
+def _check_output(spec: StepSpec, name: str, value: Any) -> None:
+    """A replaced step (a student's code) must return values of the declared types."""
+    for out in spec.outputs:
+        if out.name == name and isinstance(out.annotation, type) and out.annotation is not float:
+            if not isinstance(value, out.annotation):
+                raise InvalidValue(name, f"step {spec.name!r} must return {out.annotation.__name__} "
+                                         f"for {name!r}, got {type(value).__name__}")
+            if isinstance(value, np.ndarray) and value.dtype.kind == "f" and not np.all(np.isfinite(value)):
+                raise InvalidValue(name, f"step {spec.name!r} returned NaN or infinite values in {name!r}")
+
+
+def default_device() -> str:
+    """``cuda`` when PyTorch sees a GPU, else ``cpu`` (imports torch only when asked)."""
+    try:
+        import torch
+    except ImportError:  # pragma: no cover - torch is a dependency
+        return "cpu"
+    return "cuda" if torch.cuda.is_available() else "cpu"
+
+
+def open_session(pipeline: Pipeline, dataset: str | None = None, options: dict[str, Any] | None = None, *,
+                 seed: int = 0, session_id: str | None = None) -> Session:
+    """Load a dataset and make a session on it (the notebook / script entry point)."""
+    spec = pipeline.dataset(dataset)
+    loaded = spec.load(options)
+    return Session(pipeline, loaded, dataset=spec.name, options=options, seed=seed, session_id=session_id)
+
+
+__all__ = ["Loaded", "DatasetSpec", "Pipeline", "RunRecord", "Session", "open_session", "default_device",
+           "dataclasses"]
