@@ -251,9 +251,15 @@ class Session:
 
     # --- writing -------------------------------------------------------------------------------
     def put(self, name: str, value: Any) -> list[str]:
-        """Set an input value (an upload) and drop everything computed from the old one."""
+        """Set an input value (an upload) and drop everything computed from the old one.
+
+        Replacing a dataset value that no step produces (the photos, the board) also drops the
+        dataset's ground truth, which no longer describes the data.
+        """
         with self._exclusive():
             self._invalidate([name])
+            if self.pipeline.producer(name) is None:
+                self.truth = {}
             self.state[name] = value
             self.version += 1
             return [s.name for s in self.pipeline.downstream([name])]
@@ -361,7 +367,10 @@ class Session:
             self.state.update(values)
             evaluate = self.pipeline.evaluations.get(step)
             if evaluate is not None:  # runs without truth too (real data): it returns what it can
-                metrics.update({k: _jsonable(v) for k, v in evaluate(self.state, self.truth).items()})
+                try:
+                    metrics.update({k: _jsonable(v) for k, v in evaluate(self.state, self.truth).items()})
+                except Exception as exc:  # an evaluation must never lose a finished result
+                    warnings += (f"evaluation against the truth failed: {type(exc).__name__}: {exc}",)
             self.metrics[step] = metrics
             record = RunRecord(step, controls, seed, seconds, metrics, "ok", warnings=warnings,
                                replaced=override is not None, started=started)

@@ -198,8 +198,8 @@ class StepSpec:
 
     @property
     def writes(self) -> tuple[str, ...]:
-        """State names this step writes."""
-        return tuple(o.name for o in self.outputs if not o.is_metric)
+        """State names this step writes (a ``warnings`` field goes to the run record, not to state)."""
+        return tuple(o.name for o in self.outputs if not o.is_metric and o.name != "warnings")
 
     @property
     def reads(self) -> tuple[str, ...]:
@@ -386,7 +386,8 @@ def describe_step(func: Callable[..., Any], *, name: str | None = None) -> StepS
 
 def result_to_values(spec: StepSpec, result: Any) -> tuple[dict[str, Any], dict[str, float]]:
     """Split a step's return value into state values and metrics, checking the type."""
-    if dataclasses.is_dataclass(spec.result_type):
+    one_value = len(spec.outputs) == 1 and spec.outputs[0].annotation is spec.result_type  # -> Annotated[Image, "x"]
+    if dataclasses.is_dataclass(spec.result_type) and not one_value:
         if not isinstance(result, spec.result_type):
             raise TypeError(f"step {spec.name} must return {spec.result_type.__name__}, "
                             f"got {type(result).__name__}")

@@ -178,3 +178,22 @@ def test_unknown_names_list_what_exists(session):
     with pytest.raises(UnknownName) as info:
         session.get("means")
     assert "mean_intensity" in info.value.reason
+
+
+def test_replacing_dataset_values_drops_the_truth_but_computed_ones_keep_it(session):
+    session.run("add_noise")
+    session.put("noisy", session.get("images"))  # produced by a step: the truth still holds
+    assert session.truth
+    session.put("images", session.get("noisy"))  # the data itself changed
+    assert session.truth == {}
+
+
+def test_a_failing_evaluation_keeps_the_result_and_warns(session, monkeypatch):
+    def broken(state, truth):
+        raise IndexError("4 views against 3 poses")
+
+    monkeypatch.setitem(session.pipeline.evaluations, "mean_intensity", broken)
+    session.run("add_noise")
+    record = session.run("mean_intensity")
+    assert record.status == "ok" and "means" in session.state
+    assert any("IndexError" in w for w in record.warnings)

@@ -1,0 +1,71 @@
+"""FastAPI dependencies shared by the routers (and by routers other helpers add, e.g. lessons).
+
+All live state is in ``app.state.store`` (a :class:`~lab.core.store.SessionStore` the viewer
+shares); ``app.state.catalog`` knows the modules, ``app.state.runs`` tracks running steps.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Annotated, Callable, Sequence
+
+from fastapi import Depends, Path, Request
+
+from lab.api.errors import ModuleUnavailable, log
+from lab.core.errors import LabError, UnknownName
+from lab.core.pipeline import Pipeline, Session
+from lab.core.store import SessionStore
+
+
+@dataclass(frozen=True)
+class ModuleCatalog:
+    """The modules an app serves: their names, in listing order, and how to get a pipeline."""
+
+    names: tuple[str, ...]
+    loader: Callable[[str], Pipeline]
+
+    def get(self, name: str) -> Pipeline:
+        """The pipeline of module ``name``: UnknownName (404) when not served, ModuleUnavailable (503) when broken."""
+        if name not in self.names:
+            raise UnknownName("module", f"no module {name!r}; modules are {list(self.names)}")
+        try:
+            pipeline = self.loader(name)
+        except LabError:
+            raise
+        except KeyError:
+            raise UnknownName("module", f"no module {name!r}; modules are {list(self.names)}") from None
+        except Exception as exc:  # a module that fails to import must not take the API down with it
+            log.exception("module %s failed to load", name)
+            raise ModuleUnavailable("module", f"module {name!r} failed to load ({type(exc).__name__}: {exc})") from None
+        if not isinstance(pipeline, Pipeline):
+            raise ModuleUnavailable("module", f"module {name!r} has no pipeline (got {type(pipeline).__name__})")
+        return pipeline
+
+    @classmethod
+    def of(cls, loader: Callable[[str], Pipeline] | None, names: Sequence[str] | None) -> ModuleCatalog:
+        if loader is None or names is None:
+            from lab import modules as registry
+
+            loader = loader or registry.get_pipeline
+            names = registry.MODULES if names is None else names
+        return cls(tuple(names), loader)
+
+
+def get_store(request: Request) -> SessionStore:
+    return request.app.state.store
+
+
+def get_catalog(request: Request) -> ModuleCatalog:
+    return request.app.state.catalog
+
+
+def get_session(request: Request,
+                session_id: Annotated[str, Path(description="The session's id, as returned by POST /api/sessions.")]
+                ) -> Session:
+    """The live session ``session_id`` (404 ``field: session`` when unknown or expired)."""
+    return get_store(request).get(session_id)
+
+
+StoreDep = Annotated[SessionStore, Depends(get_store)]
+CatalogDep = Annotated[ModuleCatalog, Depends(get_catalog)]
+SessionDep = Annotated[Session, Depends(get_session)]

@@ -1,0 +1,301 @@
+"""Running steps for the API: checks before a run, the worker-thread job, and progress for event streams.
+
+A step runs in a worker thread through :meth:`Session.run`, so the event loop stays free and the
+viewer, which shares the session, sees the same state, history and lock. Each session gets one
+:class:`RunMonitor` (kept beside the session, not in it) that records the progress snapshots and the
+final outcome of the latest run, whoever started it, for ``GET /api/sessions/{id}/events``.
+"""
+
+from __future__ import annotations
+
+import threading
+import time
+import weakref
+from collections import deque
+from typing import Any, Callable
+
+from lab.api.errors import error_body, jsonable, log
+from lab.core.errors import Cancelled, InvalidControl, LabError, MissingInput, SessionBusy
+from lab.core.pipeline import RunRecord, Session
+from lab.core.step import Progress, StepSpec
+from lab.core.store import SessionStore
+
+#: Progress snapshots kept per run for subscribers who connect late (older ones are dropped).
+MAX_EVENTS = 1000
+#: A run started outside the API (the viewer) is seen through its progress; if it ends without a
+#: history record (a bug), subscribers get an error after this long.
+ORPHAN_SECONDS = 2.0
+
+
+def step_response(session: Session, record: RunRecord) -> dict[str, Any]:
+    """The JSON of one finished run: the RunRecord (params, seconds, metrics, warnings) plus context."""
+    spec = session.pipeline.step(record.step)
+    return {**record.to_json(), "session": session.id, "outputs": list(spec.writes),
+            "steps": session.step_status(), "version": session.version}
+
+
+def record_outcome(session: Session, record: RunRecord) -> tuple[str, dict[str, Any]]:
+    """The final event for a history record: ``done`` with the run's JSON, or ``error`` with the error body."""
+    if record.status == "ok":
+        return "done", step_response(session, record)
+    kind = "cancelled" if record.status == "cancelled" else "step_failed"
+    return "error", {**error_body(kind, record.step, record.error), "step": record.step}
+
+
+class RunMonitor:
+    """Progress and outcome of the latest run in one session, for event-stream subscribers.
+
+    Events are ``(seq, name, data)`` with ``seq`` increasing over the monitor's life; names are
+    ``progress`` (``{"step", "iteration", "total", "loss", "message"}``), ``done`` and ``error``.
+    """
+
+    def __init__(self, session: Session) -> None:
+        self._lock = threading.Lock()
+        self._events: deque[tuple[int, str, dict[str, Any]]] = deque(maxlen=MAX_EVENTS)
+        self._seq = 0
+        self._session = weakref.ref(session)  # never a strong reference: the monitor lives beside it
+        self.run_id = 0
+        self.active = False
+        self.external = False
+        self.job: RunJob | None = None
+        self.last_progress: dict[str, Any] | None = None
+        self._history_mark = 0
+        self._orphan_since: float | None = None
+        #: len(session.history) when the latest run ended: a longer history means newer runs elsewhere.
+        self.history_at_finish = 0
+
+    def _start_locked(self) -> None:
+        self.run_id += 1
+        self._events.clear()
+        self.active = True
+        self.last_progress = None
+        self._orphan_since = None
+
+    def _append_locked(self, name: str, data: dict[str, Any]) -> None:
+        self._seq += 1
+        self._events.append((self._seq, name, data))
+
+    def busy_with(self) -> str | None:
+        """What runs in the session now (a step name, or an API run about to start), else None."""
+        session = self._session()
+        running = session.running if session is not None else None
+        job = self.job
+        return running or (job.label if job is not None else None)
+
+    def begin(self, job: RunJob) -> None:
+        """Start an API run; SessionBusy when a run (API or viewer) is already in progress."""
+        session = self._session()
+        with self._lock:
+            busy = (session.running if session is not None else None) or (self.job.label if self.job else None)
+            if busy is not None:
+                raise SessionBusy("session", f"step {busy!r} is running in this session; wait for it or "
+                                             "POST .../cancel")
+            if self.active and self.external and session is not None:  # a viewer run nobody watched to its end
+                self._close_external_locked(session, force=True)
+            self._start_locked()
+            self.external = False
+            self.job = job
+
+    def progress(self, step: str, progress: Progress) -> None:
+        """Session listener: called from the running thread for every progress snapshot."""
+        data = jsonable({"step": step, **progress.to_json()})
+        session = self._session()
+        with self._lock:
+            if self.active and self.external and session is not None and len(session.history) > self._history_mark:
+                self._close_external_locked(session, force=True)  # an earlier viewer run nobody watched
+            if not self.active:  # a run started elsewhere (the viewer): follow it too
+                self._start_locked()
+                self.external = True
+                self._history_mark = len(session.history) if session is not None else 0
+            self.last_progress = data
+            self._append_locked("progress", data)
+
+    def finish(self, name: str, data: dict[str, Any]) -> None:
+        session = self._session()
+        with self._lock:
+            self._finish_locked(session, name, data)
+
+    def _finish_locked(self, session: Session | None, name: str, data: dict[str, Any]) -> None:
+        self.history_at_finish = len(session.history) if session is not None else 0
+        self._append_locked(name, data)
+        self.active = False
+        self.external = False
+        self.job = None
+
+    def poll(self, after: int) -> tuple[int, list[tuple[int, str, dict[str, Any]]], bool]:
+        """``(run_id, events after seq `after`, active)``; also notices the end of a run started elsewhere."""
+        self._check_external()
+        with self._lock:
+            return self.run_id, [e for e in self._events if e[0] > after], self.active
+
+    def _check_external(self) -> None:
+        session = self._session()
+        if session is None:
+            return
+        with self._lock:
+            if self.active and self.external and session.running is None:
+                self._close_external_locked(session, force=False)
+            else:
+                self._orphan_since = None
+
+    def _close_external_locked(self, session: Session, *, force: bool) -> None:
+        """End a run started elsewhere with the outcome in the session's history."""
+        if len(session.history) > self._history_mark:
+            name, data = record_outcome(session, session.history[-1])
+        else:  # the runner clears `running` a moment before it appends the record
+            now = time.monotonic()
+            self._orphan_since = self._orphan_since or now
+            if not force and now - self._orphan_since < ORPHAN_SECONDS:
+                return
+            name, data = "error", error_body("internal", "session", "the run ended without a record")
+        self._orphan_since = None
+        self._finish_locked(session, name, data)
+
+
+class RunRegistry:
+    """One :class:`RunMonitor` per live session, dropped with the session (weak keys)."""
+
+    def __init__(self) -> None:
+        self._lock = threading.Lock()
+        self._monitors: weakref.WeakKeyDictionary[Session, RunMonitor] = weakref.WeakKeyDictionary()
+
+    def monitor(self, session: Session) -> RunMonitor:
+        with self._lock:
+            monitor = self._monitors.get(session)
+            if monitor is None:
+                monitor = self._monitors[session] = RunMonitor(session)
+                session.listeners.append(monitor.progress)
+            return monitor
+
+
+# --- checks before a run --------------------------------------------------------------------------
+def _missing_input(session: Session, spec: StepSpec, name: str) -> MissingInput:
+    producer = session.pipeline.producer(name)
+    how = f"run step {producer.name!r} first" if producer else "upload it or pick a dataset that has it"
+    return MissingInput(name, f"step {spec.name!r} reads {name!r}, which does not exist yet: {how}")
+
+
+def check_idle(session: Session, monitor: RunMonitor) -> None:
+    """SessionBusy (409) when a step runs in the session or an API run is about to start."""
+    busy = monitor.busy_with()
+    if busy is not None:
+        raise SessionBusy("session", f"step {busy!r} is running in this session; wait for it or POST .../cancel")
+
+
+def plan_step(session: Session, spec: StepSpec, controls: dict[str, Any] | None) -> dict[str, Any]:
+    """Check one step can run now (controls 422, inputs 409); return its checked controls."""
+    checked = spec.coerce_controls(controls)
+    for inp in spec.inputs:
+        if not inp.optional and inp.name not in session.state:
+            raise _missing_input(session, spec, inp.name)
+    return checked
+
+
+def plan_until(session: Session, target: StepSpec, params: dict[str, Any] | None) -> list[str]:
+    """The steps ``run-until`` will run (as :meth:`Session.run_until` picks them), all checked first.
+
+    ``params`` maps step names to controls; every entry is checked (field ``step.control``) before
+    anything runs, so a bad control never leaves the session half-run.
+    """
+    pipeline = session.pipeline
+    params = dict(params or {})
+    order = [s.name for s in pipeline.steps]
+    for name, controls in params.items():
+        if name not in order:
+            raise InvalidControl(name, f"module {pipeline.name!r} has no step {name!r}; steps are {order}")
+        if order.index(name) > order.index(target.name):
+            raise InvalidControl(name, f"step {name!r} comes after {target.name!r} and would not run")
+        if controls is not None and not isinstance(controls, dict):
+            raise InvalidControl(name, "controls must be a JSON object")
+        try:
+            pipeline.step(name).coerce_controls(controls)
+        except InvalidControl as exc:
+            raise InvalidControl(f"{name}.{exc.field}", exc.reason) from None
+    available = set(session.state)
+    plan: list[str] = []
+    for spec in pipeline.steps:
+        done = bool(spec.writes) and all(w in available for w in spec.writes)
+        if spec.name == target.name or not done:
+            for inp in spec.inputs:
+                if not inp.optional and inp.name not in available:
+                    raise _missing_input(session, spec, inp.name)
+            for later in pipeline.downstream(spec.writes):
+                available.difference_update(later.writes)
+            available.update(spec.writes)
+            plan.append(spec.name)
+        if spec.name == target.name:
+            break
+    return plan
+
+
+# --- the job ------------------------------------------------------------------------------------
+class RunJob:
+    """One API request's run (a step, or every step up to one), executed in a worker thread."""
+
+    def __init__(self, session: Session, store: SessionStore, monitor: RunMonitor, *, step: str,
+                 params: dict[str, Any] | None, until: bool = False) -> None:
+        self.session = session
+        self.store = store
+        self.monitor = monitor
+        self.step = step
+        self.params = params
+        self.until = until
+        self.label = f"run-until {step}" if until else step
+        self.current = step
+        self.cancel_requested = threading.Event()
+        self.finished = threading.Event()
+        self.result: dict[str, Any] | None = None
+        self.error: BaseException | None = None
+        self._done_callbacks: list[Callable[[], None]] = []
+
+    def add_done_callback(self, callback: Callable[[], None]) -> None:
+        """Call ``callback`` (from the worker thread) when the run is over; add before starting."""
+        self._done_callbacks.append(callback)
+
+    def _watch_cancel(self, step: str, progress: Progress) -> None:
+        if self.cancel_requested.is_set():  # a cancel that arrived before the step took the lock
+            self.session.cancel_event.set()
+
+    def _run_one(self, step: str, controls: dict[str, Any] | None) -> RunRecord:
+        self.current = step
+        if self.cancel_requested.is_set():
+            raise Cancelled(step, "cancelled by the user")
+        return self.session.run(step, controls, on_progress=self._watch_cancel)
+
+    def execute(self) -> None:
+        """Run (in a worker thread); the outcome goes to ``result``/``error`` and to the monitor."""
+        session = self.session
+        try:
+            if self.until:
+                records: list[RunRecord] = []
+                params = self.params or {}
+                for spec in session.pipeline.steps:  # as Session.run_until, with a cancel check between steps
+                    if spec.name == self.step or session.step_status()[spec.name] != "done":
+                        records.append(self._run_one(spec.name, params.get(spec.name)))
+                    if spec.name == self.step:
+                        break
+                self.result = {"session": session.id, "records": [r.to_json() for r in records],
+                               "steps": session.step_status(), "version": session.version}
+            else:
+                self.result = step_response(session, self._run_one(self.step, self.params))
+            self.store.check_memory()
+            self.monitor.finish("done", self.result)
+        except LabError as exc:
+            self.error = exc
+            self.monitor.finish("error", {**exc.to_dict(), "step": self.current})
+        except Exception as exc:  # a bug in the runner, not in a step (Session.run wraps those)
+            log.exception("run %s failed in session %s", self.label, session.id)
+            self.error = exc
+            self.monitor.finish("error", error_body("internal", "server", f"{type(exc).__name__}: {exc}"))
+        finally:
+            self.finished.set()
+            for callback in self._done_callbacks:
+                try:
+                    callback()
+                except RuntimeError:  # the waiting event loop is gone (server shutting down)
+                    pass
+
+    def start_background(self) -> None:
+        """Run in a thread of its own (not the shared worker pool, which long steps would exhaust)."""
+        thread = threading.Thread(target=self.execute, name=f"lab-run-{self.session.id}-{self.step}", daemon=True)
+        thread.start()

@@ -1,0 +1,260 @@
+"""``/api/sessions``: create a session on a dataset, run steps, stream progress, cancel, reset, delete.
+
+Sessions live in the shared :class:`~lab.core.store.SessionStore`, so a session made here can be
+opened in the viewer and vice versa. Each run has a thread of its own (the event loop and the
+shared worker pool stay free); ``?wait=false`` returns 202 at once and the run's progress and
+outcome arrive on ``GET /api/sessions/{id}/events``.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import json
+from collections.abc import AsyncIterable
+from typing import Annotated, Any
+from urllib.parse import urlencode
+
+from fastapi import APIRouter, Body, Path, Query, Request, Response
+from fastapi.concurrency import run_in_threadpool
+from fastapi.sse import EventSourceResponse, ServerSentEvent
+from pydantic import BaseModel, ConfigDict, Field
+
+from lab.api.deps import CatalogDep, SessionDep, StoreDep
+from lab.api.errors import LabJSONResponse, NothingRunning, error_responses, jsonable
+from lab.api.runs import RunJob, RunMonitor, check_idle, plan_step, plan_until, record_outcome
+from lab.core.errors import InvalidValue, LabError
+from lab.core.pipeline import DatasetSpec, Pipeline, Session
+
+router = APIRouter(prefix="/api/sessions", tags=["sessions"], responses=error_responses())
+
+#: How often an event stream looks for new progress (seconds).
+POLL_SECONDS = 0.05
+
+StepName = Annotated[str, Path(description="Step name, as listed by GET /api/modules/{module}.")]
+Wait = Annotated[bool, Query(description="`true`: answer when the run is over (200 with its record). `false`: "
+                                         "answer 202 at once; follow GET /api/sessions/{id}/events.")]
+
+
+class SessionCreate(BaseModel):
+    """Which module and dataset a new session starts from."""
+
+    model_config = ConfigDict(extra="forbid", json_schema_extra={"examples": [
+        {"module": "calibration", "dataset": "synthetic", "options": {"num_views": 12}, "seed": 0},
+        {"module": "calibration", "dataset": "folder", "options": {"path": "/data/my_photos", "columns": 9, "rows": 6}},
+    ]})
+
+    module: str = Field(description="Module name (GET /api/modules).")
+    dataset: str | None = Field(None, description="Dataset name; default: the module's first dataset.")
+    options: dict[str, Any] = Field(default_factory=dict,
+                                    description="Dataset options (their JSON Schema is in GET /api/modules/{module}); "
+                                                "folder datasets take `path`.")
+    seed: int = Field(0, ge=0, le=2**32 - 1, description="Seeds every step's random generator (recorded, replayable).")
+
+
+def viewer_link(viewer_url: str | None, **query: str) -> str | None:
+    """The viewer's address opening a session (``?session=ID``) or a module; None without a viewer.
+
+    ``viewer_url`` may be ``:PORT`` (same host as the page), which stays relative.
+    """
+    if not viewer_url:
+        return None
+    base = viewer_url.split("?", 1)[0]
+    base = base if base.endswith("/") else base + "/"
+    return base + "?" + urlencode(query)
+
+
+def session_json(request: Request, session: Session) -> dict[str, Any]:
+    """A session's summary: values and their types, step status, history, metrics, warnings."""
+    monitor = request.app.state.runs.monitor(session)
+    out = session.summary()
+    out.update({
+        "title": session.pipeline.title,
+        "description": session.description,
+        "warnings": current_warnings(session),
+        "progress": monitor.last_progress if session.running is not None else None,
+        "viewer_url": request.app.state.viewer_url,
+        "links": {"self": f"/api/sessions/{session.id}", "events": f"/api/sessions/{session.id}/events",
+                  "values": f"/api/sessions/{session.id}/values/{{name}}",
+                  "module": f"/api/modules/{session.pipeline.name}",
+                  "viewer": viewer_link(request.app.state.viewer_url, session=session.id)},
+    })
+    return out
+
+
+def current_warnings(session: Session) -> list[dict[str, str]]:
+    """Warnings of the runs whose results are in the state now, in pipeline order."""
+    latest: dict[str, tuple[str, ...]] = {}
+    for record in session.history:
+        if record.status == "ok":
+            latest[record.step] = record.warnings
+    return [{"step": spec.name, "message": message} for spec in session.pipeline.steps
+            if spec.name in session.metrics for message in latest.get(spec.name, ())]
+
+
+def _load_session(pipeline: Pipeline, spec: DatasetSpec, options: dict[str, Any], seed: int) -> Session:
+    """Load a dataset (in a worker thread), naming the option at fault in every error."""
+    option_names = {o.name for o in spec.options}
+    try:
+        loaded = spec.load(options)
+    except LabError as exc:
+        if exc.field in option_names:
+            raise type(exc)(f"options.{exc.field}", exc.reason) from None
+        raise
+    except (OSError, ValueError) as exc:  # e.g. a folder that does not exist or holds no images
+        field = "options.path" if spec.takes_path else "dataset"
+        raise InvalidValue(field, f"dataset {spec.name!r} could not be loaded: {exc}") from None
+    return Session(pipeline, loaded, dataset=spec.name, options=options, seed=seed)
+
+
+@router.post("", status_code=201, summary="Create a session",
+             description="Load a dataset of a module into a new session and return its summary (201; the id is "
+                         "`id`). 404 for an unknown module or dataset, 422 for a bad option, 413 when the server "
+                         "holds too many busy sessions or the dataset is too large.")
+async def create_session(request: Request, body: SessionCreate, catalog: CatalogDep, store: StoreDep
+                         ) -> LabJSONResponse:
+    pipeline = catalog.get(body.module)
+    spec = pipeline.dataset(body.dataset)
+    session = await run_in_threadpool(_load_session, pipeline, spec, dict(body.options), body.seed)
+    store.add(session)
+    return LabJSONResponse(session_json(request, session), status_code=201,
+                           headers={"Location": f"/api/sessions/{session.id}"})
+
+
+@router.get("/{session_id}", summary="Read a session",
+            description="State value names and types, the status of every step (`done`, `ready`, `blocked`), the "
+                        "history (step, params, seed, seconds, metrics, status), current metrics and warnings, and "
+                        "the running step's latest progress.")
+def read_session(request: Request, session: SessionDep) -> LabJSONResponse:
+    return LabJSONResponse(session_json(request, session))
+
+
+@router.delete("/{session_id}", status_code=204, summary="Delete a session",
+               description="Forget the session (a running step is cancelled).")
+def delete_session(store: StoreDep, session_id: Annotated[str, Path(description="The session's id.")]) -> Response:
+    store.delete(session_id)
+    return Response(status_code=204)
+
+
+@router.post("/{session_id}/reset", summary="Reset a session",
+             description="Forget the outputs of every step, or of `step` and everything downstream of it. The "
+                         "dataset's values stay. 409 while a step runs.")
+def reset_session(request: Request, session: SessionDep,
+                  step: Annotated[str | None, Query(description="Reset only this step and what follows from it.")] = None
+                  ) -> LabJSONResponse:
+    if step is not None:
+        session.pipeline.step(step)
+    check_idle(session, request.app.state.runs.monitor(session))
+    session.reset(step)
+    return LabJSONResponse(session_json(request, session))
+
+
+async def _launch(job: RunJob, wait: bool) -> LabJSONResponse:
+    job.monitor.begin(job)  # atomically refuses a second run (409)
+    if not wait:
+        job.start_background()
+        sid = job.session.id
+        return LabJSONResponse({"session": sid, "step": job.step, "status": "running", "until": job.until,
+                                "events": f"/api/sessions/{sid}/events", "cancel": f"/api/sessions/{sid}/cancel"},
+                               status_code=202)
+    loop = asyncio.get_running_loop()
+    finished = asyncio.Event()
+    job.add_done_callback(lambda: loop.call_soon_threadsafe(finished.set))
+    job.start_background()
+    await finished.wait()
+    if job.error is not None:
+        raise job.error
+    return LabJSONResponse(job.result)
+
+
+_RUN_RESPONSES: dict[int | str, dict[str, Any]] = {
+    202: {"description": "Started in the background (`?wait=false`); follow the `events` link."},
+    **error_responses({404: "Unknown session or step.",
+                       409: "A value the step reads does not exist yet, another step is running, or the run was "
+                            "cancelled.",
+                       422: "A control is unknown, out of range or wrongly typed, or the step failed on its input."}),
+}
+
+
+@router.post("/{session_id}/steps/{step}", summary="Run a step", responses=_RUN_RESPONSES,
+             description="Run one step with the controls given in the JSON body (omitted ones take their "
+                         "defaults; their schema is in GET /api/modules/{module}). Its outputs replace the old ones "
+                         "and invalidate the steps downstream. Answers the run record: params, seed, seconds, "
+                         "metrics (with evaluations against the truth when the dataset has one), warnings.")
+async def run_step(request: Request, session: SessionDep, store: StoreDep, step: StepName,
+                   controls: Annotated[dict[str, Any] | None, Body(description="Controls of the step by name.",
+                                                                    examples=[{"sigma": 0.2}])] = None,
+                   wait: Wait = True) -> LabJSONResponse:
+    spec = session.pipeline.step(step)
+    monitor: RunMonitor = request.app.state.runs.monitor(session)
+    check_idle(session, monitor)
+    plan_step(session, spec, controls)
+    return await _launch(RunJob(session, store, monitor, step=spec.name, params=controls), wait)
+
+
+@router.post("/{session_id}/run-until/{step}", summary="Run every step up to one", responses=_RUN_RESPONSES,
+             description="Run, in order, every step not yet done before `step`, then `step` itself. The JSON body "
+                         "maps step names to their controls (`{\"detect_corners\": {\"window\": 7}}`); all of them are "
+                         "checked before anything runs. Answers the list of run records.")
+async def run_until(request: Request, session: SessionDep, store: StoreDep, step: StepName,
+                    params: Annotated[dict[str, dict[str, Any] | None] | None,
+                                      Body(description="Controls per step name.")] = None,
+                    wait: Wait = True) -> LabJSONResponse:
+    spec = session.pipeline.step(step)
+    monitor: RunMonitor = request.app.state.runs.monitor(session)
+    check_idle(session, monitor)
+    plan_until(session, spec, params)
+    return await _launch(RunJob(session, store, monitor, step=spec.name, params=params, until=True), wait)
+
+
+@router.post("/{session_id}/cancel", status_code=202, summary="Cancel the running step",
+             description="Ask the running step to stop: a long (generator) step stops at its next progress "
+                         "snapshot and its run ends with an `error` event of kind `cancelled`; a run-until stops "
+                         "before its next step. The state stays as it was before the cancelled step. 409 when "
+                         "nothing runs.")
+def cancel_run(request: Request, session: SessionDep) -> LabJSONResponse:
+    monitor: RunMonitor = request.app.state.runs.monitor(session)
+    job = monitor.job
+    if job is not None:
+        job.cancel_requested.set()
+    running = session.running
+    if running is None and job is None:
+        raise NothingRunning("session", "no step is running in this session")
+    session.cancel()
+    step = running or (job.current if job else None)
+    return LabJSONResponse({"session": session.id, "cancelling": step,
+                            "long": bool(step) and session.pipeline.step(step).is_generator}, status_code=202)
+
+
+def _event(name: str, data: dict[str, Any], event_id: str | None = None) -> ServerSentEvent:
+    return ServerSentEvent(event=name, raw_data=json.dumps(jsonable(data), allow_nan=False), id=event_id)
+
+
+@router.get("/{session_id}/events", response_class=EventSourceResponse, summary="Stream a run's progress",
+            description="Server-sent events of the latest run in the session: `progress` events "
+                        "(`{step, iteration, total, loss, message}`) while it runs, then one `done` event (the same "
+                        "JSON as the synchronous answer) or `error` event (`{error, field, reason, step}`), and the "
+                        "stream ends. A client that connects after the run is over gets its retained events again; "
+                        "when nothing has run, one `idle` event (or the outcome of the last recorded run).")
+async def stream_events(request: Request, session: SessionDep) -> AsyncIterable[ServerSentEvent]:
+    monitor: RunMonitor = request.app.state.runs.monitor(session)
+    after = 0
+    run_id, events, active = monitor.poll(after)
+    if not active and (run_id == 0 or len(session.history) > monitor.history_at_finish):
+        # No run of the API's (or a newer one elsewhere): report the last recorded run, or idle.
+        if session.history:
+            yield _event(*record_outcome(session, session.history[-1]))
+        else:
+            yield _event("idle", {"session": session.id, "running": session.running})
+        return
+    while True:
+        for seq, name, data in events:
+            after = seq
+            yield _event(name, data, f"{run_id}:{seq}")
+            if name in ("done", "error"):
+                return
+        if not active:
+            return
+        await asyncio.sleep(POLL_SECONDS)
+        current, events, active = monitor.poll(after)
+        if current != run_id:  # a new run began before this one's end was seen (events dropped)
+            return

@@ -1,0 +1,468 @@
+"""The ``vision-lab`` command: serve the lab, list modules, run a pipeline headless, export values.
+
+    vision-lab serve [--host 127.0.0.1] [--port 8000] [--viewer-port 8080]
+    vision-lab modules [--json]
+    vision-lab run MODULE [--dataset NAME|PATH] [--option KEY=VALUE]... [--set STEP.CONTROL=VALUE]...
+                          [--until STEP] [--seed N] [--json]
+    vision-lab export MODULE --what VALUE --format json|npy|png|ply|opencv-yaml --out PATH [run options]
+
+The CLI is one more front end on :mod:`lab.core` (DESIGN.md section 4): it opens a session with
+:func:`lab.open_session`'s dataset rules, runs steps with :meth:`lab.core.Session.run` (controls
+from ``--set``, checked by the step's own schema before anything runs) and writes values with
+:mod:`lab.data.exports`. A problem with what the user asked for (:class:`lab.core.errors.LabError`,
+a bad ``--set``, an unknown name, a missing folder, a step that fails on this input) prints one
+line ``error: <field>: <reason>`` on stderr and exits with code 2, never a traceback.
+"""
+
+import contextlib
+import json
+import sys
+from collections.abc import Iterator
+from pathlib import Path
+from typing import Annotated, Any, Callable, Optional
+
+import typer
+from typer.core import TyperGroup
+
+from lab.core.errors import InvalidControl, InvalidValue, LabError
+
+#: Exit code for every problem with what the user asked for (as click uses for usage errors).
+EXIT_USAGE = 2
+
+#: Formats of ``export``: the codecs' value formats plus OpenCV's calibration file.
+EXPORT_FORMATS = ("json", "npy", "png", "ply", "opencv-yaml")
+
+# Click's exception classes, whether typer vendors click (>= 0.26) or uses the package.
+_CLICK_EXCEPTION = next(c for c in typer.BadParameter.__mro__ if c.__name__ == "ClickException")
+_USAGE_ERROR = next(c for c in typer.BadParameter.__mro__ if c.__name__ == "UsageError")
+
+
+# --- the pipeline registry (tests inject their own pipelines here) ------------------------------
+def module_names() -> tuple[str, ...]:
+    """Names of the registered modules, in the order they are listed."""
+    from lab.modules import MODULES
+
+    return tuple(MODULES)
+
+
+def lookup_pipeline(name: str):
+    """The pipeline of module ``name``; raises :class:`UnknownName` (field ``module``)."""
+    from lab.modules import get_pipeline
+
+    return get_pipeline(name)
+
+
+# --- one-line errors ------------------------------------------------------------------------
+class LabGroup(TyperGroup):
+    """The command group: turns click's usage errors into the same one-line form as LabError."""
+
+    def main(self, args=None, prog_name=None, complete_var=None, standalone_mode=True, **extra):
+        if not standalone_mode:
+            return super().main(args, prog_name, complete_var, standalone_mode=False, **extra)
+        try:
+            code = super().main(args, prog_name, complete_var, standalone_mode=False, **extra)
+        except _CLICK_EXCEPTION as exc:
+            if type(exc).__name__ == "NoArgsIsHelpError":
+                exc.show()  # the help text
+            else:
+                _print_error(*_click_error_parts(exc))
+            sys.exit(exc.exit_code)
+        except typer.Abort:
+            typer.echo("aborted", err=True)
+            sys.exit(1)
+        sys.exit(code if isinstance(code, int) else 0)
+
+
+def _click_error_parts(exc: Exception) -> tuple[str, str]:
+    """(field, reason) of a click usage error: the option at fault when click names one."""
+    param = getattr(exc, "param", None)
+    message = exc.format_message()
+    if param is not None and type(exc).__name__ == "BadParameter":
+        opts = getattr(param, "opts", None) or [param.human_readable_name]
+        message = exc.message
+        field = opts[0]
+    elif getattr(exc, "option_name", None):
+        field = exc.option_name
+    else:
+        field = "usage"
+    ctx = getattr(exc, "ctx", None)
+    if isinstance(exc, _USAGE_ERROR) and ctx is not None:
+        message = f"{message} (see '{ctx.command_path} --help')"
+    return field, message
+
+
+def _print_error(field: str, reason: str) -> None:
+    line = f"error: {field}: {reason}".replace("\r", " ").replace("\n", " ")
+    typer.echo(line, err=True)
+
+
+@contextlib.contextmanager
+def _user_errors() -> Iterator[None]:
+    """Print a LabError (or a file that cannot be written) as one line and exit 2."""
+    try:
+        yield
+    except LabError as exc:
+        _print_error(exc.field, exc.reason)
+        raise typer.Exit(EXIT_USAGE) from None
+    except OSError as exc:  # writing --out, binding a port
+        where = getattr(exc, "filename", None)
+        _print_error("file" if where else "os", f"{exc.strerror or exc}{f': {where}' if where else ''}")
+        raise typer.Exit(EXIT_USAGE) from None
+
+
+# --- argument parsing -------------------------------------------------------------------------
+def parse_options(items: list[str] | None) -> dict[str, str]:
+    """``--option KEY=VALUE`` items as a dict (the dataset checks the names and types)."""
+    options: dict[str, str] = {}
+    for item in items or []:
+        key, sep, value = item.partition("=")
+        if not sep or not key.strip():
+            raise InvalidValue("--option", f"expected KEY=VALUE, got {item!r}")
+        options[key.strip()] = value
+    return options
+
+
+def parse_settings(pipeline, items: list[str] | None) -> dict[str, dict[str, Any]]:
+    """``--set STEP.CONTROL=VALUE`` items as ``{step: {control: value}}``, each checked and converted.
+
+    Raises :class:`InvalidControl` for bad syntax (field ``--set``) or a value the control
+    refuses (field ``STEP.CONTROL``), :class:`UnknownName` for an unknown step.
+    """
+    params: dict[str, dict[str, Any]] = {}
+    for item in items or []:
+        key, sep, value = item.partition("=")
+        step, dot, control = key.strip().partition(".")
+        if not sep or not dot or not step or not control:
+            raise InvalidControl("--set", f"expected STEP.CONTROL=VALUE, got {item!r}")
+        spec = pipeline.step(step)
+        try:
+            params.setdefault(step, {})[control] = spec.control(control).coerce(value)
+        except InvalidControl as exc:
+            raise InvalidControl(f"{step}.{exc.field}", exc.reason) from None
+    return params
+
+
+def _steps_through(pipeline, last: str | None) -> list:
+    """The pipeline's steps from the first through ``last`` (all when None)."""
+    if last is None:
+        return list(pipeline.steps)
+    target = pipeline.step(last)
+    return list(pipeline.steps[: pipeline.steps.index(target) + 1])
+
+
+# --- running ----------------------------------------------------------------------------------
+def _stderr_is_terminal() -> bool:
+    isatty = getattr(sys.stderr, "isatty", None)
+    return bool(isatty and isatty())
+
+
+class _ProgressDisplay:
+    """A transient progress line per step on a terminal (bar for long steps); nothing otherwise."""
+
+    def __init__(self, enabled: bool) -> None:
+        self.enabled = enabled
+
+    @contextlib.contextmanager
+    def step(self, spec) -> Iterator[Optional[Callable[[str, Any], None]]]:
+        if not self.enabled:
+            yield None
+            return
+        from rich.console import Console
+        from rich.progress import (BarColumn, MofNCompleteColumn, Progress, SpinnerColumn, TextColumn,
+                                   TimeElapsedColumn)
+
+        columns = [SpinnerColumn(), TextColumn("{task.description}")]
+        if spec.is_generator:
+            columns += [BarColumn(), MofNCompleteColumn(), TextColumn("{task.fields[note]}")]
+        columns.append(TimeElapsedColumn())
+        console = Console(file=sys.stderr, force_terminal=True)
+        with Progress(*columns, console=console, transient=True) as progress:
+            task = progress.add_task(spec.name, total=None, note="")
+
+            def on_progress(step: str, snapshot: Any) -> None:
+                note = f"loss {snapshot.loss:.4g}" if snapshot.loss is not None else snapshot.message
+                progress.update(task, completed=snapshot.iteration, total=snapshot.total, note=note)
+
+            yield on_progress
+
+
+def _open(module: str, dataset: str | None, options: list[str] | None, settings: list[str] | None,
+          seed: int):
+    """Check every argument, then load the dataset: (pipeline, session, params by step)."""
+    import lab
+    from lab.core.pipeline import open_session
+
+    pipeline = lookup_pipeline(module)
+    params = parse_settings(pipeline, settings)
+    name, resolved = lab.resolve_dataset(pipeline, dataset, parse_options(options))
+    spec = pipeline.dataset(name)
+    try:
+        session = open_session(pipeline, spec.name, resolved, seed=seed)
+    except InvalidControl as exc:  # an option's value (the dataset names only the option)
+        raise InvalidControl(f"--option {exc.field}", exc.reason) from None
+    except InvalidValue as exc:
+        field = f"--option {exc.field[len('options.'):]}" if exc.field.startswith("options.") else exc.field
+        raise InvalidValue(field, exc.reason) from None
+    except LabError:
+        raise
+    except Exception as exc:  # a loader failing on the user's files
+        raise InvalidValue("dataset", f"{spec.name!r} could not be loaded: {type(exc).__name__}: {exc}") from None
+    return pipeline, session, params
+
+
+def _run_steps(session, steps: list, params: dict[str, dict[str, Any]], display: _ProgressDisplay) -> list:
+    records = []
+    for spec in steps:
+        with display.step(spec) as on_progress:
+            record = session.run(spec.name, params.get(spec.name), on_progress=on_progress)
+        for warning in record.warnings:
+            _print_warning(spec.name, warning)
+        records.append(record)
+    return records
+
+
+def _print_warning(step: str, text: str) -> None:
+    typer.echo(f"warning: {step}: {text}".replace("\n", " "), err=True)
+
+
+def summary(module: str, dataset: str, records: list) -> dict[str, Any]:
+    """The JSON summary of a run: each step's seconds, metrics and warnings, and all metrics merged."""
+    from lab.core.codecs import to_json
+
+    merged: dict[str, Any] = {}
+    steps = []
+    for record in records:
+        metrics = to_json(record.metrics)
+        merged.update(metrics)
+        steps.append({"name": record.step, "seconds": round(record.seconds, 6), "metrics": metrics,
+                      "warnings": list(record.warnings)})
+    return {"module": module, "dataset": dataset, "steps": steps, "metrics": merged}
+
+
+def _format_number(value: Any) -> str:
+    if isinstance(value, bool) or value is None:
+        return "-" if value is None else str(value).lower()
+    if isinstance(value, float):
+        return f"{value:.4g}"
+    if isinstance(value, list):
+        shown = ", ".join(_format_number(v) for v in value[:4])
+        return f"[{shown}]" if len(value) <= 4 else f"[{shown}, ...] ({len(value)} values)"
+    return str(value)
+
+
+def _print_table(result: dict[str, Any]) -> None:
+    from rich.console import Console
+    from rich.table import Table
+
+    table = Table(title=f"{result['module']} on {result['dataset']}", title_justify="left")
+    table.add_column("step")
+    table.add_column("seconds", justify="right")
+    table.add_column("metrics")
+    table.add_column("warnings", justify="right")
+    for step in result["steps"]:
+        metrics = "\n".join(f"{k} = {_format_number(v)}" for k, v in step["metrics"].items()) or "-"
+        table.add_row(step["name"], f"{step['seconds']:.3f}", metrics, str(len(step["warnings"])))
+    Console(file=sys.stdout, highlight=False, soft_wrap=False).print(table)
+
+
+# --- commands -------------------------------------------------------------------------------
+app = typer.Typer(
+    name="vision-lab",
+    cls=LabGroup,
+    help="Vision Lab: step through 3D computer-vision algorithms in a live viewer, or run them headless.",
+    no_args_is_help=True,
+    add_completion=False,
+    pretty_exceptions_enable=False,
+)
+
+DatasetOpt = Annotated[Optional[str], typer.Option(
+    "--dataset", "-d", help="A dataset name (default: the module's first) or a folder/file of your own.")]
+OptionOpt = Annotated[Optional[list[str]], typer.Option(
+    "--option", "-o", metavar="KEY=VALUE", help="A dataset option, e.g. num_views=10 (repeatable).")]
+SetOpt = Annotated[Optional[list[str]], typer.Option(
+    "--set", "-s", metavar="STEP.CONTROL=VALUE", help="A step control, e.g. detect_corners.window=7 (repeatable).")]
+UntilOpt = Annotated[Optional[str], typer.Option("--until", "-u", metavar="STEP",
+                                                 help="Stop after this step (default: run every step).")]
+SeedOpt = Annotated[int, typer.Option("--seed", help="Seed of every step's random generator.")]
+
+
+@app.command()
+def serve(
+    host: Annotated[str, typer.Option(help="Address to bind (0.0.0.0 to serve other machines).")] = "127.0.0.1",
+    port: Annotated[int, typer.Option(min=1, max=65535, help="Port of the landing page and REST API.")] = 8000,
+    viewer_port: Annotated[int, typer.Option(min=1, max=65535, help="Port of the 3D viewer.")] = 8080,
+) -> None:
+    """Start the landing page, the REST API and the 3D viewer (Ctrl-C stops them)."""
+    with _user_errors():
+        from lab.server import serve as start_server
+
+        start_server(host=host, port=port, viewer_port=viewer_port)
+
+
+@app.command()
+def modules(as_json: Annotated[bool, typer.Option("--json", help="Print one JSON object.")] = False) -> None:
+    """List the modules, their datasets and steps with every control."""
+    with _user_errors():
+        pipelines = [lookup_pipeline(name) for name in module_names()]
+        if as_json:
+            from lab.core.codecs import to_json
+
+            typer.echo(json.dumps({"modules": to_json([p.describe() for p in pipelines])}))
+            return
+        for pipeline in pipelines:
+            typer.echo(f"{pipeline.name}: {pipeline.title}. {pipeline.summary}".rstrip())
+            typer.echo("  datasets:")
+            for i, dataset in enumerate(pipeline.datasets):
+                tags = " (default)" if i == 0 else ""
+                tags += " (reads a folder or file: --dataset PATH)" if dataset.takes_path else ""
+                typer.echo(f"    {dataset.name}{tags}: {dataset.summary}")
+                for option in dataset.options:
+                    typer.echo(f"      --option {_describe_control(option)}")
+            typer.echo("  steps:")
+            for n, step in enumerate(pipeline.steps, 1):
+                long = " (long)" if step.is_generator else ""
+                typer.echo(f"    {n}. {step.name}{long}: {step.summary}")
+                typer.echo(f"       reads {', '.join(step.reads) or '-'}; writes {', '.join(step.writes) or '-'}")
+                for control in step.controls:
+                    typer.echo(f"       --set {step.name}.{_describe_control(control)}")
+            typer.echo("")
+
+
+def _describe_control(control) -> str:
+    """``name=default  (kind, range)  description`` for the listing."""
+    if control.required:
+        text = f"{control.name}=..."
+    else:
+        default = control.default
+        shown = ",".join(str(v) for v in default) if isinstance(default, tuple) else default
+        text = f"{control.name}={str(shown).lower() if isinstance(shown, bool) else shown}"
+    kind = control.kind
+    if control.kind == "choice":
+        kind = "one of " + "|".join(str(c) for c in control.choices)
+    elif control.minimum is not None and control.maximum is not None:
+        kind = f"{kind} in [{_format_number(control.minimum)}, {_format_number(control.maximum)}]"
+    elif control.minimum is not None:
+        kind = f"{kind} >= {_format_number(control.minimum)}"
+    elif control.maximum is not None:
+        kind = f"{kind} <= {_format_number(control.maximum)}"
+    text += f"  ({kind}{', required' if control.required else ''})"
+    return f"{text}  {control.description}".rstrip()
+
+
+@app.command()
+def run(
+    module: Annotated[str, typer.Argument(help="The module, e.g. calibration (see 'vision-lab modules').")],
+    dataset: DatasetOpt = None,
+    option: OptionOpt = None,
+    set_: SetOpt = None,
+    until: UntilOpt = None,
+    seed: SeedOpt = 0,
+    as_json: Annotated[bool, typer.Option("--json", help="Print only one JSON object on stdout.")] = False,
+) -> None:
+    """Run a module's pipeline headless and print each step's time and metrics."""
+    with _user_errors():
+        pipeline, session, params = _open(module, dataset, option, set_, seed)
+        steps = _steps_through(pipeline, until)
+        display = _ProgressDisplay(enabled=not as_json and _stderr_is_terminal())
+        # With --json stdout carries exactly one JSON object: anything a step prints goes to stderr.
+        redirect = contextlib.redirect_stdout(sys.stderr) if as_json else contextlib.nullcontext()
+        with redirect:
+            records = _run_steps(session, steps, params, display)
+        result = summary(pipeline.name, session.dataset, records)
+    if as_json:
+        typer.echo(json.dumps(result))
+    else:
+        _print_table(result)
+
+
+@app.command()
+def export(
+    module: Annotated[str, typer.Argument(help="The module, e.g. calibration.")],
+    fmt: Annotated[str, typer.Option("--format", "-f", help=f"One of {', '.join(EXPORT_FORMATS)}.")],
+    out: Annotated[Path, typer.Option("--out", help="The file to write (folders are created).")],
+    what: Annotated[Optional[str], typer.Option(
+        "--what", "-w", help="The state value to write, e.g. K, corners, cloud (opencv-yaml: K and dist).")] = None,
+    index: Annotated[Optional[int], typer.Option(help="One view of an image set (png, npy).")] = None,
+    dataset: DatasetOpt = None,
+    option: OptionOpt = None,
+    set_: SetOpt = None,
+    until: UntilOpt = None,
+    seed: SeedOpt = 0,
+) -> None:
+    """Run the pipeline up to the step that produces a value, and write that value to a file."""
+    with _user_errors():
+        pipeline = lookup_pipeline(module)
+        needed = _values_to_export(pipeline, what, fmt)
+        steps = _steps_for(pipeline, needed, until)
+        _, session, params = _open(module, dataset, option, set_, seed)
+        display = _ProgressDisplay(enabled=_stderr_is_terminal())
+        records = _run_steps(session, steps, params, display)
+        metrics = summary(pipeline.name, session.dataset, records)["metrics"]
+        if fmt == "opencv-yaml":
+            written = _write_opencv_yaml(session, metrics, out)
+        else:
+            from lab.data.exports import write_value
+
+            written = write_value(out, session.get(needed[0]), fmt, name=needed[0], index=index)
+    typer.echo(f"wrote {' and '.join(needed)} ({fmt}) to {written}")
+
+
+def _values_to_export(pipeline, what: str | None, fmt: str) -> list[str]:
+    if fmt not in EXPORT_FORMATS:
+        raise InvalidValue("--format", f"unknown format {fmt!r}; formats are {list(EXPORT_FORMATS)}")
+    if fmt == "opencv-yaml":
+        if pipeline.producer("K") is None or pipeline.producer("dist") is None:
+            raise InvalidValue("--format", f"opencv-yaml writes a camera's K and dist, which module "
+                                           f"{pipeline.name!r} does not compute")
+        if what not in (None, "K", "dist"):
+            raise InvalidValue("--what", f"opencv-yaml writes K and dist together; leave --what out or "
+                                         f"give K, not {what!r}")
+        return ["K", "dist"]
+    if not what:
+        written = sorted({name for spec in pipeline.steps for name in spec.writes})
+        raise InvalidValue("--what", f"name the value to write; the steps of {pipeline.name!r} write {written}")
+    return [what]
+
+
+def _steps_for(pipeline, needed: list[str], until: str | None) -> list:
+    """The steps through the last producer of ``needed`` (or through ``until`` if later)."""
+    last = -1
+    for name in needed:
+        producer = pipeline.producer(name)
+        if producer is not None:
+            last = max(last, pipeline.steps.index(producer))
+    if until is not None:
+        stop = pipeline.steps.index(pipeline.step(until))
+        if stop < last:
+            producer = pipeline.steps[last]
+            raise InvalidValue("--until", f"{needed[-1]!r} is written by step {producer.name!r}, which comes "
+                                          f"after {until!r}")
+        last = stop
+    return list(pipeline.steps[: last + 1])
+
+
+def _write_opencv_yaml(session, metrics: dict[str, Any], out: Path) -> Path:
+    from lab.core.values import Cameras, ImageSet
+    from lab.data.exports import write_opencv_calibration
+
+    cameras = session.state.get("cameras")
+    images = session.state.get("images")
+    if isinstance(cameras, Cameras):
+        width, height = cameras.width, cameras.height
+    elif isinstance(images, ImageSet) and len(images):
+        height, width = images[0].pixels.shape[:2]
+    else:
+        raise InvalidValue("--format", "opencv-yaml needs the image size: the session has no images or cameras")
+    board = session.state.get("board")
+    per_view = metrics.get("per_view_rms_px")
+    return write_opencv_calibration(
+        out, session.get("K"), session.get("dist"), image_width=width, image_height=height,
+        avg_reprojection_error=metrics.get("rms_px"),
+        per_view_reprojection_errors=per_view if isinstance(per_view, list) else None,
+        board_width=getattr(board, "columns", None), board_height=getattr(board, "rows", None),
+        square_size=getattr(board, "square_size", None),
+        rotations=session.state.get("rotations"), translations=session.state.get("translations"))
+
+
+__all__ = ["app", "module_names", "lookup_pipeline", "parse_options", "parse_settings", "summary",
+           "EXPORT_FORMATS", "EXIT_USAGE"]
