@@ -275,10 +275,11 @@ class Session:
                 self._invalidate(spec.writes)
             self.version += 1
 
-    def _invalidate(self, names: Iterable[str]) -> None:
+    def _invalidate(self, names: Iterable[str], state: dict[str, Any] | None = None) -> None:
+        state = self.state if state is None else state
         for spec in self.pipeline.downstream(names):
             for out in spec.writes:
-                self.state.pop(out, None)
+                state.pop(out, None)
             self.metrics.pop(spec.name, None)
 
     def _exclusive(self):
@@ -338,45 +339,53 @@ class Session:
             func = override or spec.func
             self.running = step
             self.cancel_event.clear()
-            started = time.time()
-            t0 = time.perf_counter()
             try:
-                result = func(*args, **kwargs)
-                if inspect.isgenerator(result):
-                    result = self._drive(step, result, on_progress)
-                values, metrics = result_to_values(spec, result)
-                warnings = tuple(values.pop("warnings", ()) or ())
-                for name, value in values.items():
-                    _check_output(spec, name, value)
-            except LabError as exc:
-                record = RunRecord(step, controls, seed, time.perf_counter() - t0, {},
-                                   "cancelled" if isinstance(exc, Cancelled) else "failed",
-                                   error=str(exc), replaced=override is not None, started=started)
-                self.history.append(record)
-                raise
-            except Exception as exc:  # a step (or a student's function) failed on this input
-                record = RunRecord(step, controls, seed, time.perf_counter() - t0, {}, "failed",
-                                   error=f"{type(exc).__name__}: {exc}", replaced=override is not None,
-                                   started=started)
-                self.history.append(record)
-                raise StepFailed(step, f"{type(exc).__name__}: {exc}") from exc
+                return self._execute(spec, func, args, kwargs, controls, seed, on_progress,
+                                     replaced=override is not None)
             finally:
-                self.running = None
-            seconds = time.perf_counter() - t0
-            self._invalidate(spec.writes)
-            self.state.update(values)
-            evaluate = self.pipeline.evaluations.get(step)
-            if evaluate is not None:  # runs without truth too (real data): it returns what it can
-                try:
-                    metrics.update({k: _jsonable(v) for k, v in evaluate(self.state, self.truth).items()})
-                except Exception as exc:  # an evaluation must never lose a finished result
-                    warnings += (f"evaluation against the truth failed: {type(exc).__name__}: {exc}",)
-            self.metrics[step] = metrics
-            record = RunRecord(step, controls, seed, seconds, metrics, "ok", warnings=warnings,
-                               replaced=override is not None, started=started)
-            self.history.append(record)
-            self.version += 1
-            return record
+                self.running = None  # only after the new state (or the failure) is recorded
+                self.version += 1
+
+    def _execute(self, spec: StepSpec, func: Callable[..., Any], args: list[Any], kwargs: dict[str, Any],
+                 controls: dict[str, Any], seed: int, on_progress: ProgressCallback | None, *,
+                 replaced: bool) -> RunRecord:
+        step = spec.name
+        started = time.time()
+        t0 = time.perf_counter()
+        try:
+            result = func(*args, **kwargs)
+            if inspect.isgenerator(result):
+                result = self._drive(step, result, on_progress)
+            values, metrics = result_to_values(spec, result)
+            warnings = tuple(values.pop("warnings", ()) or ())
+            for name, value in values.items():
+                _check_output(spec, name, value)
+        except LabError as exc:
+            self.history.append(RunRecord(step, controls, seed, time.perf_counter() - t0, {},
+                                          "cancelled" if isinstance(exc, Cancelled) else "failed",
+                                          error=str(exc), replaced=replaced, started=started))
+            raise
+        except Exception as exc:  # a step (or a student's function) failed on this input
+            self.history.append(RunRecord(step, controls, seed, time.perf_counter() - t0, {}, "failed",
+                                          error=f"{type(exc).__name__}: {exc}", replaced=replaced,
+                                          started=started))
+            raise StepFailed(step, f"{type(exc).__name__}: {exc}") from exc
+        seconds = time.perf_counter() - t0
+        state = dict(self.state)  # readers (the viewer's thread) always see a whole state
+        self._invalidate(spec.writes, state)
+        state.update(values)
+        evaluate = self.pipeline.evaluations.get(step)
+        if evaluate is not None:  # runs without truth too (real data): it returns what it can
+            try:
+                metrics.update({k: _jsonable(v) for k, v in evaluate(state, self.truth).items()})
+            except Exception as exc:  # an evaluation must never lose a finished result
+                warnings += (f"evaluation against the truth failed: {type(exc).__name__}: {exc}",)
+        record = RunRecord(step, controls, seed, seconds, metrics, "ok", warnings=warnings,
+                           replaced=replaced, started=started)
+        self.state = state
+        self.metrics[step] = metrics
+        self.history.append(record)
+        return record
 
     def _drive(self, step: str, generator, on_progress: ProgressCallback | None) -> Any:
         """Iterate a generator step, forwarding progress; closing it on cancel cancels the work."""

@@ -114,8 +114,9 @@ class Control:
                         return choice
             raise InvalidControl(where, f"must be one of {list(self.choices)}, got {value!r}")
         if self.kind == "tuple":
-            if isinstance(value, str):
-                value = [v for v in re.split(r"[,x\s]+", value.strip("()[] ")) if v]
+            if isinstance(value, str):  # "9x6", "9, 6", "(9 6)"; an "x" splits only numbers
+                numeric = all(k in ("int", "float") for k in self.item_kinds)
+                value = [v for v in re.split(r"[,x\s]+" if numeric else r"\s*,\s*", value.strip("()[] ")) if v]
             if not isinstance(value, (list, tuple)) or len(value) != len(self.item_kinds):
                 raise InvalidControl(where, f"must be a list of {len(self.item_kinds)} values, got {value!r}")
             return tuple(_coerce_scalar(f"{where}[{i}]", k, v, self.minimum, self.maximum)
@@ -311,7 +312,8 @@ def _control_from(name: str, annotation: Any, default: Any, description: str) ->
     if origin is Literal:
         return Control(kind="choice", choices=tuple(typing.get_args(annotation)), **common)
     if isinstance(annotation, type) and issubclass(annotation, enum.Enum):
-        return Control(kind="choice", choices=tuple(m.value for m in annotation), **common)
+        raise TypeError(f"control {name!r}: use Literal[...] for choices (one way to do it; "
+                        "an Enum's members would not survive JSON and CLI text)")
     if origin is tuple:
         kinds = tuple(_scalar_kind(name, a) for a in typing.get_args(annotation))
         if not kinds or Ellipsis in typing.get_args(annotation):
@@ -325,7 +327,7 @@ def _scalar_kind(name: str, annotation: Any) -> str:
         if annotation is cls:
             return kind
     raise TypeError(f"control {name!r} has annotation {annotation!r}; controls must be float, int, "
-                    "bool, str, Literal[...], an Enum or a fixed tuple of those")
+                    "bool, str, Literal[...] or a fixed tuple of those")
 
 
 def _result_type(hints: dict[str, Any]) -> tuple[Any, bool]:

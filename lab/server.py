@@ -1,0 +1,114 @@
+"""The lab in one process: the FastAPI app (landing page, REST API) under uvicorn and the viser
+viewer, on two ports, sharing one :class:`~lab.core.SessionStore` (DESIGN.md section 4).
+
+Because both front ends hold the same store, a session made over REST can be opened in the
+viewer (``http://HOST:VIEWER_PORT/?session=ID``), and a step run over REST redraws every tab
+that shows its session.
+
+    vision-lab serve --host 127.0.0.1 --port 8000 --viewer-port 8080
+    # or: from lab.server import serve; serve(port=8000, viewer_port=8080)
+"""
+
+from __future__ import annotations
+
+import logging
+import threading
+from dataclasses import dataclass
+from typing import Any, Iterable, Mapping
+
+from lab.core.pipeline import Pipeline
+from lab.core.store import SessionStore
+
+log = logging.getLogger("lab.server")
+
+
+@dataclass
+class RunningLab:
+    """A lab started by :func:`start`: its store, viewer, API server and URLs; :meth:`stop` ends it."""
+
+    store: SessionStore
+    viewer: Any
+    api_server: Any
+    api_thread: threading.Thread | None
+    api_url: str
+    viewer_url: str
+
+    def stop(self) -> None:
+        if self.api_server is not None:
+            self.api_server.should_exit = True
+        if self.api_thread is not None:
+            self.api_thread.join(timeout=10)
+        self.viewer.stop()
+
+
+def _display_host(host: str) -> str:
+    return "localhost" if host in ("0.0.0.0", "::", "") else host
+
+
+def _build(host: str, port: int, viewer_port: int, store: SessionStore | None,
+           modules: Mapping[str, Pipeline] | Iterable[Pipeline] | None, log_level: str):
+    import uvicorn
+
+    from lab.api.app import create_app
+    from lab.viewer.app import ViewerApp
+
+    store = store if store is not None else SessionStore()
+    viewer = ViewerApp(store, host=host, port=viewer_port, modules=modules).start()
+    try:
+        # viser moves to the next free port when the asked one is taken: link the one it got. On a
+        # wildcard address the landing page resolves ":PORT" against the host the browser used.
+        viewer_url = f":{viewer.port}" if host in ("0.0.0.0", "::", "") else viewer.url
+        if modules is None:
+            app = create_app(store, viewer_url=viewer_url)
+        else:
+            pipelines = dict(modules) if isinstance(modules, Mapping) else {p.name: p for p in modules}
+            app = create_app(store, modules=pipelines.__getitem__, module_names=list(pipelines),
+                             viewer_url=viewer_url)
+        config = uvicorn.Config(app, host=host, port=port, log_level=log_level)
+        api_server = uvicorn.Server(config)
+    except BaseException:
+        viewer.stop()
+        raise
+    return store, viewer, viewer_url, api_server
+
+
+def serve(*, host: str = "127.0.0.1", port: int = 8000, viewer_port: int = 8080, store: SessionStore | None = None,
+          modules: Mapping[str, Pipeline] | Iterable[Pipeline] | None = None, log_level: str = "info") -> None:
+    """Serve the landing page and REST API on ``port`` and the viewer on ``viewer_port``; blocks
+    until interrupted (Ctrl-C / SIGTERM), then stops both.
+
+    ``store`` (default: a new one) is shared by both; ``modules`` restricts what is offered
+    (default: every registered module).
+    """
+    store, viewer, viewer_url, api_server = _build(host, port, viewer_port, store, modules, log_level)
+    print(f"Vision Lab: landing page and REST API on http://{_display_host(host)}:{port} "
+          f"(OpenAPI at /docs), 3D viewer on {viewer.url}", flush=True)
+    try:
+        api_server.run()  # uvicorn handles SIGINT / SIGTERM: it shuts down and re-raises the signal
+    except KeyboardInterrupt:
+        pass
+    finally:
+        viewer.stop()
+
+
+def start(*, host: str = "127.0.0.1", port: int = 8000, viewer_port: int = 8080, store: SessionStore | None = None,
+          modules: Mapping[str, Pipeline] | Iterable[Pipeline] | None = None, log_level: str = "warning",
+          timeout: float = 30.0) -> RunningLab:
+    """Start the lab in background threads and return once both servers accept connections
+    (for notebooks and tests); call ``.stop()`` on the result."""
+    import time
+
+    store, viewer, viewer_url, api_server = _build(host, port, viewer_port, store, modules, log_level)
+    thread = threading.Thread(target=api_server.run, name="lab-api", daemon=True)
+    thread.start()
+    deadline = time.monotonic() + timeout
+    while not api_server.started:
+        if not thread.is_alive() or time.monotonic() > deadline:
+            viewer.stop()
+            api_server.should_exit = True
+            raise RuntimeError(f"the REST API did not start on {host}:{port}")
+        time.sleep(0.05)
+    return RunningLab(store, viewer, api_server, thread, f"http://{_display_host(host)}:{port}", viewer.url)
+
+
+__all__ = ["serve", "start", "RunningLab"]
