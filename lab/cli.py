@@ -464,5 +464,10 @@ def _write_opencv_yaml(session, metrics: dict[str, Any], out: Path) -> Path:
         rotations=session.state.get("rotations"), translations=session.state.get("translations"))
 
 
+# Lessons and grading (`vision-lab grade ...`, `vision-lab lesson ...`) live with the grader.
+from lab.lessons.cli import register as _register_lessons  # noqa: E402
+
+_register_lessons(app)
+
 __all__ = ["app", "module_names", "lookup_pipeline", "parse_options", "parse_settings", "summary",
            "EXPORT_FORMATS", "EXIT_USAGE"]

@@ -1,0 +1,226 @@
+"""``/api/lessons`` and ``/api/submissions``: lesson texts and starters, uploads graded in the background.
+
+    GET  /api/lessons                         the lessons (id, title, module, points, tasks)
+    GET  /api/lessons/{id}                    one lesson: its text, tasks (signatures, checks) and starter file
+    GET  /api/lessons/{id}/starter.py         the starter file itself
+    POST /api/lessons/{id}/submissions        upload a .py (multipart field ``file``) -> 202 {id, status, url}
+    GET  /api/submissions/{id}                status (queued, running, done, error) and results.json
+    GET  /api/lessons/{id}/submissions        every submission of a lesson, for an instructor
+
+Grading never runs in a request: an upload is committed to the database and a worker of the
+:class:`~lab.lessons.service.LessonService` grades it. The service comes from
+``app.state.lesson_service``; when the app has none, the router's lifespan builds one from the
+environment (:meth:`LessonService.from_env`) and starts it (requeueing what a killed server left
+running). Tests build an app with just this router: :func:`build_app`.
+"""
+
+from __future__ import annotations
+
+import ast
+import contextlib
+import hmac
+import os
+from typing import Annotated, Any, AsyncIterator
+
+from fastapi import APIRouter, FastAPI, File, Form, Path, Request, UploadFile
+from fastapi.responses import PlainTextResponse
+
+from lab.api.errors import LabJSONResponse, error_responses, register_error_handlers
+from lab.core.errors import CapacityExceeded, InvalidValue, LabError, UnknownName
+from lab.lessons.service import LessonService
+from lab.lessons.store import default_database_url
+
+
+class UnsupportedUpload(LabError):
+    """An upload that is not Python source text."""
+
+    status = 415
+    kind = "unsupported_media_type"
+
+
+class Forbidden(LabError):
+    """An instructor-only route without the instructor's token."""
+
+    status = 403
+    kind = "forbidden"
+
+
+def _database_exists() -> bool:
+    """A database is configured, or the default SQLite file exists (so there may be gradings to requeue)."""
+    url = default_database_url()
+    if os.environ.get("VISION_LAB_DATABASE_URL") or not url.startswith("sqlite:///"):
+        return True
+    return os.path.exists(url[len("sqlite:///"):])
+
+
+@contextlib.asynccontextmanager
+async def lessons_lifespan(app: FastAPI) -> AsyncIterator[None]:
+    """Start the lesson service with the app (requeue interrupted gradings, start the workers), stop it after.
+
+    Without ``app.state.lesson_service`` the service is built from the environment; when no database
+    is configured and the default SQLite file does not exist yet, nothing can have been interrupted,
+    so the service is only built on the first lesson request (no file is created by merely starting).
+    """
+    service = getattr(app.state, "lesson_service", None)
+    if service is None and _database_exists():
+        service = LessonService.from_env()
+        app.state.lesson_service = service
+    if service is not None:
+        service.start()
+    try:
+        yield
+    finally:
+        service = getattr(app.state, "lesson_service", None)
+        if service is not None:
+            service.stop()
+
+
+router = APIRouter(prefix="/api", tags=["lessons"], lifespan=lessons_lifespan,
+                   responses=error_responses({404: "Unknown lesson or submission."}))
+
+LessonId = Annotated[str, Path(description="Lesson id (`01-calibration`) or name (`calibration`).",
+                               pattern=r"^[a-z0-9][a-z0-9-]{0,99}$")]
+SubmissionId = Annotated[str, Path(description="The id returned by POST /api/lessons/{id}/submissions.",
+                                   pattern=r"^[0-9a-f]{32}$")]
+
+
+def get_lesson_service(request: Request) -> LessonService:
+    """The app's lesson service (built from the environment and started on first use if the lifespan did not run)."""
+    service = getattr(request.app.state, "lesson_service", None)
+    if service is None:
+        service = LessonService.from_env()
+        request.app.state.lesson_service = service
+    if not service.started:
+        service.start()
+    return service
+
+
+def _summary_text(text: str) -> str:
+    """The first paragraph after the title of lesson.md."""
+    paragraphs = [p.strip() for p in text.split("\n\n") if p.strip()]
+    body = [p for p in paragraphs if not p.startswith("#")]
+    return " ".join(body[0].split()) if body else ""
+
+
+@router.get("/lessons", summary="List the lessons",
+            description="Every lesson: id, title, module, points, a summary and its tasks (step names and points).")
+def list_lessons(request: Request) -> LabJSONResponse:
+    service = get_lesson_service(request)
+    listed = []
+    for lesson_id in service.catalog.ids():
+        try:
+            lesson = service.catalog.get(lesson_id)
+        except LabError as exc:  # a broken lesson is listed with the reason, never takes the list down
+            listed.append({"id": lesson_id, "title": lesson_id, "available": False, "reason": str(exc), "tasks": []})
+            continue
+        listed.append({**lesson.summary(), "summary": _summary_text(lesson.text), "available": True,
+                       "url": f"/api/lessons/{lesson.id}", "starter_url": f"/api/lessons/{lesson.id}/starter.py"})
+    return LabJSONResponse(listed)
+
+
+@router.get("/lessons/{lesson_id}", summary="Describe one lesson",
+            description="The lesson text (Markdown), its tasks (the step, its signature, points, the checks) and the "
+                        "starter file a student fills in. Check data and seeds stay hidden.")
+def describe_lesson(request: Request, lesson_id: LessonId) -> LabJSONResponse:
+    lesson = get_lesson_service(request).catalog.get(lesson_id)
+    return LabJSONResponse({**lesson.describe(), "summary": _summary_text(lesson.text),
+                            "starter_url": f"/api/lessons/{lesson.id}/starter.py",
+                            "submissions_url": f"/api/lessons/{lesson.id}/submissions"})
+
+
+@router.get("/lessons/{lesson_id}/starter.py", summary="Download the starter file", response_class=PlainTextResponse)
+def starter_file(request: Request, lesson_id: LessonId) -> PlainTextResponse:
+    lesson = get_lesson_service(request).catalog.get(lesson_id)
+    return PlainTextResponse(lesson.starter, media_type="text/x-python; charset=utf-8",
+                             headers={"Content-Disposition": f'attachment; filename="{lesson.id}-starter.py"'})
+
+
+def check_upload(payload: bytes, filename: str, *, limit: int) -> str:
+    """The uploaded file as text, or a 4xx error: too large (413), not Python text (415), not parsable (422)."""
+    if len(payload) > limit:
+        raise CapacityExceeded("file", f"the file is larger than {limit} bytes, the most a submission may be")
+    if not filename.lower().endswith(".py"):
+        raise UnsupportedUpload("file", f"a submission is a Python file ending in .py, got {filename!r}")
+    if not payload.strip():
+        raise InvalidValue("file", "the file is empty")
+    if b"\x00" in payload:
+        raise UnsupportedUpload("file", "the file contains NUL bytes: it is not Python source text")
+    try:
+        text = payload.decode("utf-8-sig")
+    except UnicodeDecodeError as exc:
+        raise UnsupportedUpload("file", f"the file is not UTF-8 text (byte {exc.start}): save it as UTF-8 Python "
+                                        "source") from None
+    try:
+        ast.parse(text, filename=filename)
+    except SyntaxError as exc:
+        raise InvalidValue("file", f"{filename} line {exc.lineno}: SyntaxError: {exc.msg}") from None
+    return text
+
+
+@router.post("/lessons/{lesson_id}/submissions", status_code=202, summary="Submit a file for grading",
+             description="Upload the student's Python file (multipart field `file`, optional form field `student`). "
+                         "Answers 202 with the submission's id at once; grading runs in the background. Poll "
+                         "GET /api/submissions/{id} for the result (Gradescope's results.json).",
+             responses=error_responses({413: "The file is too large.", 415: "The file is not Python source text.",
+                                        422: "The file does not parse as Python."}))
+async def submit(request: Request, lesson_id: LessonId,
+                 file: Annotated[UploadFile, File(description="The student's .py file.")],
+                 student: Annotated[str, Form(max_length=200, description="Who submits (shown to the instructor).")] = ""
+                 ) -> LabJSONResponse:
+    service = get_lesson_service(request)
+    lesson = service.catalog.get(lesson_id)
+    payload = await file.read(service.max_submission_bytes + 1)
+    text = check_upload(payload, file.filename or "", limit=service.max_submission_bytes)
+    submission_id = service.submit(lesson.id, file.filename or "submission.py", text, student=student)
+    return LabJSONResponse({"id": submission_id, "lesson": lesson.id, "status": "queued",
+                            "url": f"/api/submissions/{submission_id}"}, status_code=202)
+
+
+@router.get("/submissions/{submission_id}", summary="A submission's status and results",
+            description="`status` is `queued`, `running`, `done` (with `results`: Gradescope's results.json) or "
+                        "`error` (grading itself failed; `error` says why).")
+def get_submission(request: Request, submission_id: SubmissionId) -> LabJSONResponse:
+    found = get_lesson_service(request).queue.get(submission_id)
+    if found is None:
+        raise UnknownName("submission", f"no submission {submission_id!r}")
+    return LabJSONResponse(found.to_json())
+
+
+@router.get("/lessons/{lesson_id}/submissions", summary="A lesson's submissions (instructor)",
+            description="Every submission of the lesson, newest first, with status and score (no results or "
+                        "source). Needs `Authorization: Bearer <VISION_LAB_INSTRUCTOR_TOKEN>` when that is set.",
+            responses=error_responses({403: "Instructor token missing or wrong."}))
+def list_submissions(request: Request, lesson_id: LessonId) -> LabJSONResponse:
+    service = get_lesson_service(request)
+    _check_instructor(request, service)
+    lesson = service.catalog.get(lesson_id)
+    rows: list[dict[str, Any]] = [s.to_json(with_results=False) for s in service.queue.list(lesson.id)]
+    return LabJSONResponse({"lesson": lesson.id, "submissions": rows, "counts": service.queue.counts()})
+
+
+def _check_instructor(request: Request, service: LessonService) -> None:
+    token = service.instructor_token
+    if not token:
+        return
+    given = request.headers.get("authorization", "")
+    scheme, _, value = given.partition(" ")
+    if scheme.lower() != "bearer" or not hmac.compare_digest(value.strip().encode(), token.encode()):
+        raise Forbidden("authorization", "this list is for instructors: send 'Authorization: Bearer <token>'")
+
+
+def build_app(service: LessonService | None = None) -> FastAPI:
+    """An app with just the lesson routes and the shared JSON errors (tests; a grading-only server)."""
+    app = FastAPI(title="Vision Lab lessons", default_response_class=LabJSONResponse)
+    if service is not None:
+        app.state.lesson_service = service
+    register_error_handlers(app)
+    app.include_router(router)
+    return app
+
+
+def standalone_app() -> FastAPI:
+    """``uvicorn --factory lab.api.lessons:standalone_app``: the lesson routes configured from the environment."""
+    return build_app(LessonService.from_env())
+
+
+__all__ = ["router", "build_app", "standalone_app", "get_lesson_service", "lessons_lifespan", "check_upload"]

@@ -1,0 +1,75 @@
+"""What the REST API's lesson routes run on: the lesson catalog, the submission queue and its worker pool.
+
+:func:`LessonService.from_env` reads the configuration from the environment:
+
+``VISION_LAB_DATABASE_URL``
+    SQLAlchemy URL of the submissions database (default: the SQLite file
+    ``~/.local/share/vision-lab/submissions.sqlite``).
+``VISION_LAB_LESSONS_DIR``
+    Folder of lessons (default: ``lessons/`` beside the ``lab`` package).
+``VISION_LAB_GRADING_WORKERS``
+    Number of grading threads (default 1; each grading uses one sandbox process).
+``VISION_LAB_INSTRUCTOR_TOKEN``
+    When set, ``GET /api/lessons/{id}/submissions`` needs ``Authorization: Bearer <token>``.
+``VISION_LAB_MAX_SUBMISSION_BYTES``
+    Largest accepted upload (default 256 KiB).
+"""
+
+from __future__ import annotations
+
+import os
+from typing import Any
+
+from lab.lessons.format import LessonCatalog
+from lab.lessons.store import GradeFunction, Submission, SubmissionQueue, WorkerPool
+
+DEFAULT_MAX_SUBMISSION_BYTES = 256 * 1024
+
+
+class LessonService:
+    """Lessons, their submissions and the graders; started and stopped with the server."""
+
+    def __init__(self, *, catalog: LessonCatalog | None = None, queue: SubmissionQueue | None = None,
+                 workers: int = 1, grade: GradeFunction | None = None, instructor_token: str | None = None,
+                 max_submission_bytes: int = DEFAULT_MAX_SUBMISSION_BYTES, poll_s: float = 1.0) -> None:
+        self.catalog = catalog or LessonCatalog()
+        self.queue = queue or SubmissionQueue()
+        self.instructor_token = instructor_token or None
+        self.max_submission_bytes = int(max_submission_bytes)
+        self.pool = WorkerPool(self.queue, grade or self._grade, workers=workers, poll_s=poll_s)
+        self.started = False
+
+    @classmethod
+    def from_env(cls, environ: dict[str, str] | None = None) -> LessonService:
+        environ = dict(os.environ if environ is None else environ)
+        lessons_dir = environ.get("VISION_LAB_LESSONS_DIR")
+        return cls(catalog=LessonCatalog(lessons_dir) if lessons_dir else LessonCatalog(),
+                   queue=SubmissionQueue(environ.get("VISION_LAB_DATABASE_URL") or None),
+                   workers=int(environ.get("VISION_LAB_GRADING_WORKERS", "1")),
+                   instructor_token=environ.get("VISION_LAB_INSTRUCTOR_TOKEN"),
+                   max_submission_bytes=int(environ.get("VISION_LAB_MAX_SUBMISSION_BYTES",
+                                                        DEFAULT_MAX_SUBMISSION_BYTES)))
+
+    def _grade(self, submission: Submission) -> dict[str, Any]:
+        from lab.lessons.grader import grade
+
+        lesson = self.catalog.get(submission.lesson)
+        return grade(lesson, submission.source).results_json()
+
+    def start(self) -> int:
+        """Requeue what a killed server left running, start the workers; returns how many were requeued."""
+        if self.started:
+            return 0
+        requeued = self.queue.requeue_running()
+        self.pool.start()
+        self.started = True
+        return requeued
+
+    def stop(self) -> None:
+        self.pool.stop()
+        self.started = False
+
+    def submit(self, lesson: str, filename: str, source: str, *, student: str = "") -> str:
+        submission_id = self.queue.submit(lesson, filename, source, student=student)
+        self.pool.wake()
+        return submission_id

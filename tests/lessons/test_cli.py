@@ -1,0 +1,90 @@
+"""``vision-lab grade`` and ``vision-lab lesson ...`` through lab.lessons.cli.register on a Typer app."""
+
+from __future__ import annotations
+
+import json
+
+import pytest
+import typer
+from typer.testing import CliRunner
+
+from lab.lessons.cli import register
+
+from lesson_helpers import FIXTURES, SUBMISSIONS
+
+TOY = str(FIXTURES / "lessons" / "00-toy")
+
+
+@pytest.fixture(scope="module")
+def app():
+    application = typer.Typer()
+
+    @application.callback()
+    def main() -> None:
+        """vision-lab (test)"""
+
+    register(application)
+    return application
+
+
+def run(app, *args, env=None):
+    return CliRunner().invoke(app, [str(a) for a in args], env=env)
+
+
+def test_grade_writes_results_json_and_prints_a_summary(app, tmp_path):
+    out = tmp_path / "out" / "results.json"
+    result = run(app, "grade", TOY, SUBMISSIONS / "toy" / "wrong_ignores_scale.py", "--out", out, "--seed", 3)
+    assert result.exit_code == 0, result.output
+    assert "5 / 6 points" in result.stdout
+    assert "  FAIL 0/1  Mean intensity: scale = 3" in result.stdout and "PASS 1/1" in result.stdout
+    assert "Hint: you ignore the control scale" in result.stdout
+    results = json.loads(out.read_text())
+    assert results["score"] == 5.0 and len(results["tests"]) == 6
+
+
+def test_grade_json_and_reference(app):
+    result = run(app, "grade", TOY, "--reference", "--json")
+    assert result.exit_code == 0
+    assert json.loads(result.stdout)["score"] == 6.0
+
+
+@pytest.mark.parametrize("args,field", [
+    ([TOY], "SUBMISSION"),
+    ([TOY, SUBMISSIONS / "toy" / "solution.py", "--reference"], "SUBMISSION"),
+    (["no-such-lesson", SUBMISSIONS / "toy" / "solution.py"], "lesson"),
+    ([TOY, "missing.py"], "SUBMISSION"),
+])
+def test_grade_usage_errors_are_one_line_and_exit_2(app, args, field):
+    result = run(app, "grade", *args)
+    assert result.exit_code == 2
+    lines = result.stderr.strip().splitlines()
+    assert len(lines) == 1 and lines[0].startswith(f"error: {field}: ")
+
+
+def test_grade_refuses_a_file_that_is_not_utf8(app, tmp_path):
+    bad = tmp_path / "bad.py"
+    bad.write_bytes(b"x = '\xff'\n")
+    result = run(app, "grade", TOY, bad)
+    assert result.exit_code == 2 and "not UTF-8" in result.stderr
+
+
+def test_lesson_list_and_validate(app, tmp_path):
+    result = run(app, "lesson", "list", env={"VISION_LAB_LESSONS_DIR": str(FIXTURES / "lessons")})
+    assert result.exit_code == 0 and "00-toy  Toy lesson: noise and means" in result.stdout
+    result = run(app, "lesson", "list", "--json", env={"VISION_LAB_LESSONS_DIR": str(FIXTURES / "lessons")})
+    assert json.loads(result.stdout)[0]["points"] == 6.0
+    assert run(app, "lesson", "validate", TOY).stdout.startswith("00-toy: ok (2 tasks, 6 checks, 6 points)")
+    broken = tmp_path / "00-broken"
+    broken.mkdir()
+    (broken / "tasks.toml").write_text("[lesson]\n")
+    result = run(app, "lesson", "validate", broken)
+    assert result.exit_code == 2 and result.stderr.startswith("error: 00-broken/lesson.md: is missing")
+
+
+def test_lesson_run_writes_a_report(app, tmp_path):
+    result = run(app, "lesson", "run", TOY, "--report", tmp_path / "report", "--seed", 4)
+    assert result.exit_code == 0, result.output
+    assert "mean_intensity" in result.stdout and "report written to" in result.stdout
+    assert (tmp_path / "report" / "index.html").is_file() and (tmp_path / "report" / "scene.html").is_file()
+    result = run(app, "lesson", "run", TOY, "--report", tmp_path / "r2", "--dataset", "nope")
+    assert result.exit_code == 2 and result.stderr.startswith("error: --dataset: no dataset 'nope'")

@@ -1,0 +1,192 @@
+"""The lesson format: loading, validation against the module, the catalog, what students see."""
+
+from __future__ import annotations
+
+import shutil
+from pathlib import Path
+
+import pytest
+
+from lab.core.errors import UnknownName
+from lab.lessons.format import (LessonCatalog, LessonFormatError, Limits, find_lesson, load_lesson,
+                                parse_signature)
+
+from lesson_helpers import FIXTURES
+
+TOY = FIXTURES / "lessons" / "00-toy"
+
+
+def copy_toy(tmp_path: Path, *, tasks: str | None = None, starter: str | None = None, name: str = "00-toy") -> Path:
+    folder = tmp_path / name
+    shutil.copytree(TOY, folder)
+    if tasks is not None:
+        (folder / "tasks.toml").write_text(tasks)
+    if starter is not None:
+        (folder / "starter.py").write_text(starter)
+    return folder
+
+
+def edited(old: str, new: str) -> str:
+    text = (TOY / "tasks.toml").read_text()
+    assert old in text
+    return text.replace(old, new, 1)
+
+
+# --- smoke and known answers -----------------------------------------------------------------------
+def test_toy_lesson_loads_with_its_tasks_checks_and_points(toy_lesson):
+    assert toy_lesson.id == "00-toy"
+    assert toy_lesson.title == "Toy lesson: noise and means"  # the first heading of lesson.md
+    assert [t.step for t in toy_lesson.tasks] == ["make_noisy", "mean_intensity"]
+    assert toy_lesson.points == 6.0
+    assert toy_lesson.datasets["secret"].seed == 1234 and toy_lesson.datasets["small"].seed == "fresh"
+    check = toy_lesson.task("means").checks[1]
+    assert check.params == {"scale": 3} and check.options == {"rtol": 1e-6}
+    assert toy_lesson.limits.call_timeout_s == 10
+
+
+def test_calibration_lesson_is_valid_and_matches_the_module(calibration_lesson):
+    assert [t.step for t in calibration_lesson.tasks] == ["estimate_homographies", "estimate_intrinsics"]
+    assert calibration_lesson.points == 20.0
+    assert calibration_lesson.pipeline.name == "calibration"
+    assert set(calibration_lesson.datasets) == {"clean", "noisy"}
+
+
+def test_describe_shows_text_tasks_starter_but_no_seeds_or_check_data(toy_lesson):
+    described = toy_lesson.describe()
+    assert described["starter"].startswith('"""Toy lesson')
+    assert "Write `make_noisy`" in described["text"]
+    assert described["tasks"][1]["signature"].startswith("mean_intensity(")
+    text = repr(described)
+    assert "1234" not in text and "seed" not in text and "gradients" not in text
+
+
+def test_catalog_lists_and_resolves_ids_and_names(tmp_path):
+    copy_toy(tmp_path)
+    catalog = LessonCatalog(tmp_path)
+    assert catalog.ids() == ["00-toy"]
+    assert catalog.get("toy").id == "00-toy" and catalog.get("00-toy") is catalog.get("toy")
+    with pytest.raises(UnknownName, match="lessons are"):
+        catalog.get("stereo")
+
+
+def test_find_lesson_by_folder_path(tmp_path):
+    folder = copy_toy(tmp_path)
+    assert find_lesson(folder).id == "00-toy"
+    assert find_lesson(folder / "tasks.toml").id == "00-toy"
+
+
+def test_parse_signature():
+    name, params = parse_signature("f(a: T, b, *, k: int = 1, rng) -> R", "x")
+    assert name == "f" and params.positional == ("a", "b") and params.keyword == ("k", "rng")
+    assert params.defaults == {"k": 1}
+    with pytest.raises(LessonFormatError, match="not a Python signature"):
+        parse_signature("f(a,, b)", "x")
+
+
+# --- errors: each names the file and the key ------------------------------------------------------------
+@pytest.mark.parametrize("old,new,field,reason", [
+    ('module = "toy_lesson_pipeline:PIPELINE"', 'module = "no_such_module:X"', "lesson.module", "cannot import"),
+    ('step = "make_noisy"', 'step = "no_step"', "tasks[0].step", "has no step"),
+    ('compare = "allclose"', 'compare = "roughly"', "tasks[0].checks[0].compare", "unknown comparison"),
+    ('rtol = 1e-5\natol = 1e-6', 'rtol = 1e-5\nwiggle = 1e-6', "tasks[0].checks[0].wiggle", "no option"),
+    ('dataset = "small"\ncompare', 'dataset = "huge"\ncompare', "tasks[0].checks[0].dataset", "no [datasets.huge]"),
+    ("points = 2\n", "points = 5\n", "tasks[0].points", "add up to"),
+    ("params = { scale = 3 }", "params = { scale = 30 }", "tasks[1].checks[1].params.scale", "at most"),
+    ("params = { scale = 3 }", "params = { zoom = 3 }", "tasks[1].checks[1].params.zoom", "no control"),
+    ('seed = 1234', 'seed = "sometimes"', "datasets.secret.seed", "fresh"),
+    ('options = { count = 4, size = 8 }', 'options = { count = 4, pixels = 8 }', "datasets.secret.options.pixels",
+     "no such option"),
+    ('until = "mean_intensity"', 'until = "make_noisy"', "tasks[0].checks[1].until", "after"),
+    ('value = "means"', 'value = "images"', "tasks[0].checks[1].value", "writes"),
+    ('hints = [{ when = "scaled" },', 'hints = [{ when = "psychic" },', "tasks[1].checks[0].hints[0].when",
+     "unknown detector"),
+    ('visibility = "after_published"', 'visibility = "secret"', "tasks[1].checks[2].visibility", "must be one of"),
+    ("[limits]\ncpu_seconds = 20", "[limits]\ncpu_seconds = -1", "limits.cpu_seconds", "positive"),
+    ("[limits]\n", "[limits]\ngpu = 1\n", "limits.gpu", "unknown key"),
+    ('signature = "mean_intensity(noisy: ImageSet, *, scale: int = 1) -> np.ndarray"',
+     'signature = "mean_intensity(noisy: ImageSet, *, factor: int = 1) -> np.ndarray"', "tasks[1].signature", "differs"),
+])
+def test_format_errors_name_the_file_and_key(tmp_path, old, new, field, reason):
+    folder = copy_toy(tmp_path, tasks=edited(old, new))
+    with pytest.raises(LessonFormatError) as caught:
+        load_lesson(folder)
+    assert caught.value.field.startswith("00-toy/tasks.toml")
+    assert caught.value.field.endswith(field), caught.value.field
+    assert reason in caught.value.reason
+
+
+def test_invalid_toml_is_reported(tmp_path):
+    folder = copy_toy(tmp_path, tasks="[lesson\nmodule = 1")
+    with pytest.raises(LessonFormatError, match="not valid TOML"):
+        load_lesson(folder)
+
+
+def test_a_step_returning_one_value_can_be_a_task(tmp_path):
+    tasks = (TOY / "tasks.toml").read_text() + """
+[[tasks]]
+name = "bad"
+step = "normalize_means"
+signature = "normalize_means(means)"
+[[tasks.checks]]
+name = "x"
+points = 1
+dataset = "small"
+compare = "allclose"
+"""
+    starter = (TOY / "starter.py").read_text() + "\n\ndef normalize_means(means):\n    raise NotImplementedError\n"
+    folder = copy_toy(tmp_path, tasks=tasks, starter=starter)
+    assert load_lesson(folder).task("bad").step == "normalize_means"  # one value: allowed
+
+
+@pytest.mark.parametrize("starter,reason", [
+    ('def make_noisy(images, *, sigma=0.05, rng):\n    raise NotImplementedError\n', "defines no function 'mean_intensity'"),
+    ('def make_noisy(images, *, sigma=0.05, rng):\n    raise NotImplementedError\n'
+     'def mean_intensity(noisy, *, factor=1):\n    raise NotImplementedError\n', "differs"),
+    ('def make_noisy(images, *, sigma=0.05, rng):\n    raise NotImplementedError\n'
+     'def mean_intensity(noisy, *, scale=1):\n    return noisy\n', "must raise NotImplementedError"),
+    ('def make_noisy(images, *, sigma=0.05, rng)\n', "line 1"),
+])
+def test_starter_must_define_every_task_with_its_parameters_raising(tmp_path, starter, reason):
+    folder = copy_toy(tmp_path, starter=starter)
+    with pytest.raises(LessonFormatError, match="starter.py") as caught:
+        load_lesson(folder)
+    assert reason in caught.value.reason
+
+
+def test_missing_files_and_bad_folder_names(tmp_path):
+    folder = copy_toy(tmp_path)
+    (folder / "lesson.md").unlink()
+    with pytest.raises(LessonFormatError, match="lesson.md"):
+        load_lesson(folder)
+    with pytest.raises(LessonFormatError, match="NN-name"):
+        load_lesson(copy_toy(tmp_path, name="toy"))
+
+
+def test_limits_refuse_nonsense():
+    assert Limits().cpu_seconds > 0
+    with pytest.raises(LessonFormatError, match="positive"):
+        Limits(memory_mb=0)
+
+
+def test_a_step_returning_a_result_dataclass_cannot_be_a_task(tmp_path):
+    folder = tmp_path / "02-corners"
+    folder.mkdir()
+    (folder / "lesson.md").write_text("# Corners\n")
+    (folder / "starter.py").write_text("def detect_corners(images, board, *, subpixel=True, window=5):\n"
+                                       "    raise NotImplementedError\n")
+    (folder / "tasks.toml").write_text("""
+[lesson]
+module = "calibration"
+[datasets.d]
+dataset = "synthetic"
+[[tasks]]
+step = "detect_corners"
+signature = "detect_corners(images, board, *, subpixel=True, window=5)"
+[[tasks.checks]]
+name = "x"
+points = 1
+dataset = "d"
+compare = "allclose"
+""")
+    with pytest.raises(LessonFormatError, match="cannot be a task"):
+        load_lesson(folder)

@@ -1,0 +1,34 @@
+"""Headless lesson runs and their HTML report (metrics, images, the saved 3D scene)."""
+
+from __future__ import annotations
+
+import json
+
+from lab.lessons.report import run_lesson, write_report
+
+
+def test_run_lesson_runs_every_step_on_the_first_check_dataset(toy_lesson):
+    run = run_lesson(toy_lesson, seed=2)
+    assert [r.step for r in run.records] == ["make_noisy", "mean_intensity", "normalize_means"]
+    assert run.dataset == "gradients" and run.options == {"count": 3, "size": 16, "seed": 2} and not run.error
+    assert run.records[0].params == {"sigma": 0.05}  # the dataset's step controls from tasks.toml
+    again = run_lesson(toy_lesson, seed=2)
+    assert again.session.state["means"].tolist() == run.session.state["means"].tolist()
+
+
+def test_calibration_report_has_metrics_images_and_the_3d_scene(calibration_lesson, tmp_path):
+    index = write_report(calibration_lesson, tmp_path / "report", dataset="noisy", seed=1)
+    page = index.read_text()
+    assert "<h1>Camera calibration: homographies and intrinsics</h1>" in page
+    for step in ("detect_corners", "estimate_homographies", "estimate_intrinsics", "refine_calibration"):
+        assert f"<td>{step}</td>" in page
+    assert "rms_px = " in page and "fx_rel_error = " in page
+    assert '<iframe src="scene.html"' in page and "<details><summary>lesson.md</summary>" in page
+    scene = (tmp_path / "report" / "scene.html").read_text()
+    assert scene.lstrip().lower().startswith("<!doctype html") and len(scene) > 10_000
+    images = sorted(p.name for p in (tmp_path / "report" / "images").iterdir())
+    assert "images_view_00.png" in images and "per_view_rms.png" in images
+    assert (tmp_path / "report" / "images" / "images_view_00.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    summary = json.loads((tmp_path / "report" / "report.json").read_text())
+    assert summary["dataset"] == "synthetic" and summary["options"]["noise_px"] == 1.0 and summary["seed"] == 1
+    assert summary["steps"][-2]["step"] == "refine_calibration" and summary["steps"][-2]["metrics"]["rms_px"] > 0
