@@ -22,6 +22,11 @@ back with viser's public ``client.local_storage.get_item``. Messages to a client
 order, so the value is there when the read arrives; the key is random per connection, so two
 tabs never see each other's query. When a session is opened, the viewer writes ``?session=ID``
 into the tab's address bar (``history.replaceState``), so reloading the tab reopens it.
+
+Lesson mode (:mod:`lab.viewer.lesson`, on when the view is given a lesson catalog): a lesson
+picker and ``?lesson=ID``, the lesson's text in a panel beside the pipeline, and the student's
+own code (uploaded, or the starter) run in a sandbox in place of a task's step, or compared with
+the reference's on the same inputs.
 """
 
 from __future__ import annotations
@@ -51,8 +56,10 @@ POLL_SECONDS = 0.5
 #: Minimum time between two GUI updates from progress snapshots (and between two preview draws).
 PROGRESS_SECONDS = 0.1
 PREVIEW_SECONDS = 0.5
+#: Width in pixels of the panel of images and plots, docked on the left.
+MEDIA_PANEL_WIDTH = 440
 #: Query parameters the viewer understands.
-QUERY_KEYS = ("session", "module", "dataset")
+QUERY_KEYS = ("session", "module", "dataset", "lesson")
 
 STATUS_MARK = {"done": "✓", "ready": "›", "blocked": "·", "running": "…"}
 
@@ -283,13 +290,19 @@ def read_query(client: Any, *, timeout: float = 5.0) -> dict[str, str]:
     return {k: v for k, v in parse_qsl((search or "").lstrip("?")) if k in QUERY_KEYS}
 
 
-def set_page_query(client: Any, session_id: str) -> None:
-    """Write ``?session=ID`` into the tab's address bar (keeping viser's own parameters)."""
+def set_page_query(client: Any, session_id: str | None = None, **params: str | None) -> None:
+    """Write ``?session=ID`` into the tab's address bar (keeping viser's own parameters, dropping
+    ``module`` and ``dataset``, which the session replaces); ``params`` set others (None: remove)."""
     from viser import _messages
 
-    safe = "".join(c for c in session_id if c.isalnum() or c in "-_")
-    script = ("try { const p = new URLSearchParams(window.location.search);"
-              f' p.set("session", "{safe}"); p.delete("module"); p.delete("dataset");'
+    changes = dict(params)
+    if session_id is not None:
+        changes.update(session=session_id, module=None, dataset=None)
+    safe = {key: None if value is None else "".join(c for c in value if c.isalnum() or c in "-_")
+            for key, value in changes.items()}
+    edits = " ".join(f'p.delete("{key}");' if value is None else f'p.set("{key}", "{value}");'
+                     for key, value in safe.items())
+    script = ("try { const p = new URLSearchParams(window.location.search); " + edits +
               ' window.history.replaceState(null, "", "?" + p.toString()); } catch (e) {}')
     try:
         client._websock_connection.queue_message(_messages.RunJavascriptMessage(source=script))
@@ -314,11 +327,12 @@ class ClientView:
     """The viewer of one browser tab (or, in tests, of a viser server's shared GUI).
 
     ``target`` is a viser ``ClientHandle`` (or a ``ViserServer``): anything with ``.gui`` and
-    ``.scene``. The view owns every GUI element and scene node it adds.
+    ``.scene``. The view owns every GUI element and scene node it adds. With ``lessons`` (a
+    :class:`~lab.lessons.format.LessonCatalog`) the view has a lesson mode (:mod:`lab.viewer.lesson`).
     """
 
     def __init__(self, target: Any, store: SessionStore, catalog: ModuleCatalog, *, is_client: bool = True,
-                 background: bool = True) -> None:
+                 background: bool = True, lessons: Any = None) -> None:
         self.target = target
         self.gui = target.gui
         self.scene = target.scene
@@ -339,9 +353,14 @@ class ClientView:
                                                 "preview": 0.0}
         self._step_handles: list[Any] = []
         self._dataset_option_handles: dict[str, Any] = {}
+        self.lesson_mode: Any = None  # a LessonMode when ``lessons`` is given
         self._build_static()
         self.drawer = StateDrawer(Canvas(scene=self.scene, gui=self.gui, images=self.images_tab,
                                          plots=self.plots_tab, on_view_selected=self._view_selected))
+        if lessons is not None:
+            from lab.viewer.lesson import LessonMode  # imports this module
+
+            self.lesson_mode = LessonMode(self, lessons)
 
     # --- static GUI ------------------------------------------------------------------------------
     def _build_static(self) -> None:
@@ -384,7 +403,7 @@ class ClientView:
         self.plots_tab = self.media_panel.add_tab("Plots")
         try:
             self.media_panel.dock_left()
-            self.media_panel.set_width(440)
+            self.media_panel.set_width(MEDIA_PANEL_WIDTH)
             gui.main_panel.dock_right()
             gui.main_panel.set_width(400)
         except Exception as exc:  # placement is cosmetic
@@ -445,25 +464,33 @@ class ClientView:
 
     # --- sessions ---------------------------------------------------------------------------------
     def start(self, query: Mapping[str, str] | None = None) -> None:
-        """Open what the page asked for (``?session=ID``, ``?module=..&dataset=..``), else a new
-        session on the first module's default dataset."""
+        """Open what the page asked for (``?session=ID``, ``?module=..&dataset=..``, ``?lesson=ID``),
+        else a new session on the first module's default dataset (the lesson's module with a lesson)."""
         query = dict(query or {})
-        problem: LabError | None = None
+        problems: list[LabError] = []  # shown once a session is open (opening one clears the error box)
+        if query.get("lesson") and self.lesson_mode is not None:
+            try:
+                self.lesson_mode.select(query["lesson"])
+            except LabError as exc:
+                problems.append(exc)
         if query.get("session"):
             try:
                 self.open_session(self.store.get(query["session"]))
-                return
             except LabError as exc:
-                problem = exc  # shown once the fresh session below is open
-        module = query.get("module") or (self.catalog.names() or [None])[0]
-        try:
-            if module is None:
-                raise UnknownName("module", "this server offers no module")
-            pipeline = self.catalog.get(module)
-            self.open_session(self.store.create(pipeline, query.get("dataset") or None))
-        except LabError as exc:
-            self.show_error(exc)
-        if problem is not None:
+                problems.append(exc)
+        if self.session is None:
+            try:
+                if self.lesson_mode is not None and self.lesson_mode.lesson is not None:
+                    self.lesson_mode.new_session()
+                else:
+                    module = query.get("module") or (self.catalog.names() or [None])[0]
+                    if module is None:
+                        raise UnknownName("module", "this server offers no module")
+                    pipeline = self.catalog.get(module)
+                    self.open_session(self.store.create(pipeline, query.get("dataset") or None))
+            except LabError as exc:
+                problems.append(exc)
+        for problem in problems:
             self.show_error(problem)
 
     def new_session_from_gui(self) -> None:
@@ -507,6 +534,8 @@ class ClientView:
                 self.module_dropdown.value = session.pipeline.name
                 self._module_changed()
             self._build_steps()
+            if self.lesson_mode is not None:
+                self.lesson_mode.attach()  # the task steps get "use my code" and "Compare with reference"
             self.refresh(force=True)
         if self.is_client:
             set_page_query(self.target, session.id)
@@ -524,6 +553,8 @@ class ClientView:
         self.closed = True
         with self.lock:
             self._detach()
+        if self.lesson_mode is not None:
+            self.lesson_mode.close()  # ends the student's sandbox
 
     # --- steps ------------------------------------------------------------------------------------
     def _build_steps(self) -> None:
@@ -584,21 +615,32 @@ class ClientView:
             job = lambda: self._run_until(session, step, params)  # noqa: E731
         else:
             params = self.step_params(step)
-            job = lambda: session.run(step, params)  # noqa: E731
+            job = lambda: session.run(step, params, override=self.override(step))  # noqa: E731
         if not until:
             self._set_label(step, "running")
+        self.in_background(job, step)
+
+    def in_background(self, job: Callable[[], Any], name: str) -> None:
+        """Run ``job`` in the tab's worker thread (inline when ``background`` is False), off viser's
+        threads; what it raises is shown in the GUI, and the view is refreshed after it."""
+        if self.worker is not None and self.worker.is_alive():
+            raise LabError(name, "the tab is still busy with the last step or comparison; wait or press Cancel")
         if self.background:
-            self.worker = threading.Thread(target=self._work, args=(job,), name=f"lab-viewer-{step}", daemon=True)
+            self.worker = threading.Thread(target=self._work, args=(job,), name=f"lab-viewer-{name}", daemon=True)
             self.worker.start()
         else:
             self._work(job)
+
+    def override(self, step: str) -> Callable[..., Any] | None:
+        """The function run in place of ``step``: the student's, in lesson mode with "use my code" on."""
+        return self.lesson_mode.override(step) if self.lesson_mode is not None else None
 
     def _run_until(self, session: Session, step: str, params: dict[str, dict[str, Any]]) -> None:
         """:meth:`Session.run_until`, one step at a time, redrawing after each."""
         for spec in session.pipeline.steps:
             if spec.name == step or session.step_status()[spec.name] != "done":
                 self._set_label(spec.name, "running")
-                session.run(spec.name, params.get(spec.name))
+                session.run(spec.name, params.get(spec.name), override=self.override(spec.name))
                 if spec.name != step:
                     self.refresh(force=True)
             if spec.name == step:
@@ -835,14 +877,21 @@ class ViewerApp:
     """The viser server of the lab: one :class:`ClientView` per browser tab, sharing ``store``.
 
     ``modules`` (default: every registered module) is what the module picker offers; sessions
-    of other modules can still be opened by id. Call :meth:`start`, then :meth:`stop`.
+    of other modules can still be opened by id. ``lessons`` is the lesson picker's
+    :class:`~lab.lessons.format.LessonCatalog` (True: the lessons folder, ``lessons_root()``;
+    False: no lesson mode). Call :meth:`start`, then :meth:`stop`.
     """
 
     def __init__(self, store: SessionStore | None = None, *, host: str = "127.0.0.1", port: int = 8080,
                  modules: Mapping[str, Pipeline] | Iterable[Pipeline] | None = None, label: str = "Vision Lab",
-                 poll_seconds: float = POLL_SECONDS) -> None:
+                 poll_seconds: float = POLL_SECONDS, lessons: Any = True) -> None:
         self.store = store if store is not None else SessionStore()
         self.catalog = ModuleCatalog(modules)
+        if lessons is True:
+            from lab.lessons.format import LessonCatalog
+
+            lessons = LessonCatalog()
+        self.lessons = None if lessons is False else lessons
         self.host = host
         self.requested_port = port
         self.label = label
@@ -889,7 +938,7 @@ class ViewerApp:
         try:
             query = read_query(client)
             client.scene.set_up_direction("-y")
-            view = ClientView(client, self.store, self.catalog)
+            view = ClientView(client, self.store, self.catalog, lessons=self.lessons)
             with self._views_lock:
                 self.views[client.client_id] = view
             view.start(query)

@@ -2,13 +2,14 @@
 
 The landing page lists the modules and links the viewer; the viewer opens a session per tab, runs
 a step when its Run button is clicked, and shows its metrics; the run is visible over REST; a
-session made over REST opens at ``?session=ID`` and follows the steps a script runs. Screenshots
-go to ``test-output/`` (gitignored). The server process group is always killed.
+session made over REST opens at ``?session=ID`` and follows the steps a script runs; a lesson
+opens at ``?lesson=ID`` with its text beside the pipeline, takes a student's file from the upload
+button and compares its output with the reference's. Screenshots go to ``test-output/``
+(gitignored). The server process group is always killed.
 """
 
 from __future__ import annotations
 
-import importlib
 import os
 import re
 import signal
@@ -29,22 +30,11 @@ CHROMIUM_ARGS = ["--headless", "--no-sandbox", "--enable-unsafe-swiftshader", "-
 TIMEOUT_MS = 60_000
 
 
-def calibration_ready() -> bool:
-    try:
-        return getattr(importlib.import_module("lab.modules.calibration"), "PIPELINE", None) is not None
-    except Exception:
-        return False
-
-
-# The module the test drives: calibration (served by the CLI exactly as a user starts it). While
-# lab/modules/calibration.py has no PIPELINE yet, the toy pipeline of tests/toy_pipeline.py is
-# served through lab.server.serve instead.
-# TODO(lead): once calibration is merged, drop the toy branch (and `calibration_ready`).
-if calibration_ready():
-    MODULE, FIRST_STEP, SECOND_STEP, LONG_STEP, METRIC = ("calibration", "detect_corners", "estimate_homographies",
-                                                          "refine_calibration", "views_found")
-else:
-    MODULE, FIRST_STEP, SECOND_STEP, LONG_STEP, METRIC = "toy", "add_noise", "mean_intensity", "lift", "mean_abs_change"
+# The module the tests drive, served by the CLI exactly as a user starts it.
+MODULE, FIRST_STEP, SECOND_STEP, LONG_STEP, METRIC = ("calibration", "detect_corners", "estimate_homographies",
+                                                      "refine_calibration", "views_found")
+LESSON = "01-calibration"
+SOLUTION = ROOT / "tests" / "fixtures" / "submissions" / "calibration" / "solution.py"
 
 
 def free_port() -> int:
@@ -54,12 +44,8 @@ def free_port() -> int:
 
 
 def server_command(port: int, viewer_port: int) -> list[str]:
-    if MODULE == "calibration":
-        return [sys.executable, "-m", "lab", "serve", "--host", "127.0.0.1", "--port", str(port),
-                "--viewer-port", str(viewer_port)]
-    code = ("from lab.server import serve; from toy_pipeline import TOY; "
-            f"serve(host='127.0.0.1', port={port}, viewer_port={viewer_port}, modules={{'toy': TOY}})")
-    return [sys.executable, "-c", code]
+    return [sys.executable, "-m", "lab", "serve", "--host", "127.0.0.1", "--port", str(port),
+            "--viewer-port", str(viewer_port)]
 
 
 @pytest.fixture
@@ -67,8 +53,7 @@ def lab_server():
     """The lab in a subprocess (its own process group); yields (api_url, viewer_url)."""
     OUTPUT.mkdir(exist_ok=True)
     port, viewer_port = free_port(), free_port()
-    env = dict(os.environ, PYTHONPATH=os.pathsep.join([str(ROOT / "tests"), os.environ.get("PYTHONPATH", "")]),
-               PYTHONUNBUFFERED="1")
+    env = dict(os.environ, PYTHONUNBUFFERED="1")
     log = open(OUTPUT / "e2e-server.log", "w")
     process = subprocess.Popen(server_command(port, viewer_port), cwd=ROOT, env=env, stdout=log,
                                stderr=subprocess.STDOUT, start_new_session=True)
@@ -192,3 +177,43 @@ def test_a_session_made_over_rest_opens_and_follows_the_script(lab_server, brows
     page.screenshot(path=str(OUTPUT / "e2e-viewer-rest-session.png"))
     # the tab did not make a session of its own
     assert httpx.get(f"{api_url}/api/health", timeout=30).json()["sessions"] == 1
+
+
+@pytest.mark.e2e
+def test_lesson_mode_shows_the_text_and_compares_a_students_file(lab_server, browser):
+    api_url, viewer_url = lab_server
+    page = browser.new_page(viewport={"width": 1400, "height": 900})
+    page.goto(f"{viewer_url}/?lesson={LESSON}", timeout=TIMEOUT_MS)
+
+    # the lesson's text beside the pipeline; a session on its module; both in the address bar
+    page.get_by_text("Task 1: the normalized DLT homography").first.wait_for(timeout=TIMEOUT_MS)
+    page.wait_for_url(re.compile(rf".*[?&]session=\w+"), timeout=TIMEOUT_MS)
+    assert f"lesson={LESSON}" in page.url
+    session_id = re.search(r"session=(\w+)", page.url).group(1)
+    assert httpx.get(f"{api_url}/api/sessions/{session_id}", timeout=30).json()["module"] == MODULE
+    first_title, second_title = step_title(api_url, FIRST_STEP), step_title(api_url, SECOND_STEP)
+    page.get_by_text(re.compile(rf"^1\. {re.escape(first_title)} . ready$")).wait_for(timeout=TIMEOUT_MS)
+    page.wait_for_timeout(1000)
+    page.screenshot(path=str(OUTPUT / "e2e-lesson-text.png"))
+
+    # the student's file through the upload button (the browser's file chooser)
+    with page.expect_file_chooser(timeout=TIMEOUT_MS) as chooser:
+        page.get_by_role("button", name="Upload my .py", exact=True).click()
+    chooser.value.set_files(str(SOLUTION))
+    page.get_by_text("Loaded solution.py:").wait_for(timeout=TIMEOUT_MS)
+
+    # detect the corners, then compare the student's homographies with the reference's
+    page.get_by_role("button", name="Run", exact=True).first.click()
+    page.get_by_text(re.compile(rf"^1\. {re.escape(first_title)} . done$")).wait_for(timeout=TIMEOUT_MS)
+    page.get_by_text(re.compile(rf"^2\. {re.escape(second_title)} . ready$")).click()  # open its folder
+    page.get_by_role("button", name="Compare with reference", exact=True).first.click()
+    page.get_by_text("Your output matches the reference's.").wait_for(timeout=TIMEOUT_MS)
+    page.wait_for_timeout(1000)
+    page.screenshot(path=str(OUTPUT / "e2e-lesson-compare.png"))
+
+    # Run with "use my code" on (it is, once the file defines the function): the student's step ran
+    page.get_by_role("button", name="Run", exact=True).nth(1).click()
+    page.get_by_text(re.compile(rf"^2\. {re.escape(second_title)} . done$")).wait_for(timeout=TIMEOUT_MS)
+    history = httpx.get(f"{api_url}/api/sessions/{session_id}", timeout=30).json()["history"]
+    assert [(r["step"], r["status"], r["replaced"]) for r in history] == [
+        (FIRST_STEP, "ok", False), (SECOND_STEP, "ok", True)]
