@@ -1,0 +1,53 @@
+"""A user's image files: list them in a folder by a shell pattern, and read them as :class:`lab.core.Image`.
+
+Shared by the loaders of a user's photos (:func:`lab.data.two_view.photos`; the checkerboard folder
+loader does the same). Files are decoded by OpenCV's ``imread`` (any depth, alpha dropped, BGR turned
+into RGB by :func:`lab.core.codecs.image_from_cv2`).
+"""
+
+from __future__ import annotations
+
+import glob
+import os
+
+from lab.core import Image, InvalidValue
+from lab.data.checkerboard import IMAGE_SUFFIXES  # the endings OpenCV's imread decodes
+
+
+def check_folder(path: str) -> str:
+    """``path`` if it names a folder, else :class:`InvalidValue` on ``path``."""
+    if not path or not os.path.isdir(path):
+        raise InvalidValue("path", f"no folder {path!r}")
+    return path
+
+
+def list_images(path: str, pattern: str = "*") -> list[str]:
+    """The image files of folder ``path`` whose names match the shell ``pattern``, sorted by name.
+
+    ``pattern`` is a file-name pattern (``*.jpg``, ``left0?.png``), never a path; files whose
+    endings OpenCV does not read are skipped. The list may be empty.
+    """
+    check_folder(path)
+    if not pattern or os.sep in pattern or (os.altsep and os.altsep in pattern):
+        raise InvalidValue("pattern", f"must be a file-name pattern such as '*.jpg', got {pattern!r}")
+    return sorted(f for f in glob.glob(os.path.join(glob.escape(path), pattern))
+                  if os.path.isfile(f) and f.lower().endswith(IMAGE_SUFFIXES))
+
+
+def read_images(files: list[str]) -> list[Image]:
+    """Decode each file (``cv2.imread``, unchanged depth) into an Image named by its file name."""
+    import cv2
+
+    from lab.core.codecs import image_from_cv2
+
+    images = []
+    for file in files:
+        decoded = cv2.imread(file, cv2.IMREAD_UNCHANGED)
+        if decoded is None:
+            raise InvalidValue("path", f"OpenCV cannot read {os.path.basename(file)!r} in "
+                                       f"{os.path.dirname(file) or '.'!r}")
+        images.append(image_from_cv2(decoded, name=os.path.basename(file)))
+    return images
+
+
+__all__ = ["IMAGE_SUFFIXES", "check_folder", "list_images", "read_images"]
