@@ -14,8 +14,6 @@ corners displaced by a controlled amount of noise and a little pixel noise; its 
 
 from __future__ import annotations
 
-import glob
-import os
 from dataclasses import dataclass
 from typing import Annotated
 
@@ -25,10 +23,6 @@ from lab.core import Image, ImageSet, InvalidValue, Loaded, Mesh, Points2D, Rang
 from lab.geometry.camera import (as_distortion, distort_components, pixels_to_normalized, project_points,
                                  undistort)
 from lab.geometry.rotations import rotvec_to_matrix
-
-#: File name endings OpenCV's ``imread`` decodes (others in a folder are skipped).
-IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".jpe", ".bmp", ".dib", ".tif", ".tiff", ".webp", ".pbm", ".pgm",
-                  ".ppm", ".pxm", ".pnm", ".sr", ".ras", ".exr", ".hdr", ".pic", ".jp2")
 
 #: Label values of the printed pattern (see :meth:`Checkerboard.labels`).
 BLACK, WHITE, BACKGROUND = 0, 1, 2
@@ -430,29 +424,17 @@ def folder(*, path: str, columns: Annotated[int, Range(2, 100)] = 9, rows: Annot
         pattern: shell pattern of the file names to read (e.g. ``left*.jpg``); files that are not
             images are skipped.
     """
-    import cv2
-
-    from lab.core.codecs import image_from_cv2
+    from lab.data.files import IMAGE_SUFFIXES, list_images, read_images
 
     board = Checkerboard(columns, rows, square_size)
-    if not path or not os.path.isdir(path):
-        raise InvalidValue("path", f"no folder {path!r}")
-    if not pattern or os.sep in pattern or (os.altsep and os.altsep in pattern):
-        raise InvalidValue("pattern", f"must be a file-name pattern such as '*.jpg', got {pattern!r}")
-    files = sorted(f for f in glob.glob(os.path.join(glob.escape(path), pattern))
-                   if os.path.isfile(f) and f.lower().endswith(IMAGE_SUFFIXES))
+    files = list_images(path, pattern)
     if not files:
         raise InvalidValue("path", f"folder {path!r} holds no images matching {pattern!r} "
                                    f"(readable endings: {', '.join(IMAGE_SUFFIXES)})")
-    images = []
-    for file in files:
-        decoded = cv2.imread(file, cv2.IMREAD_UNCHANGED)
-        if decoded is None:
-            raise InvalidValue("path", f"OpenCV cannot read {os.path.basename(file)!r} in {path!r}")
-        images.append(image_from_cv2(decoded, name=os.path.basename(file)))
+    images = read_images(files)
     description = (f"{len(images)} photos from {path} ({columns}x{rows} inner corners, "
                    f"{square_size * 1000:g} mm squares)")
     return Loaded({"images": ImageSet(tuple(images)), "board": board}, {}, description)
 
 
-__all__ = ["Checkerboard", "synthetic", "folder", "IMAGE_SUFFIXES", "BLACK", "WHITE", "BACKGROUND"]
+__all__ = ["Checkerboard", "synthetic", "folder", "BLACK", "WHITE", "BACKGROUND"]

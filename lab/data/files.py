@@ -1,7 +1,7 @@
 """A user's image files: list them in a folder by a shell pattern, and read them as :class:`lab.core.Image`.
 
-Shared by the loaders of a user's photos (:func:`lab.data.two_view.photos`; the checkerboard folder
-loader does the same). Files are decoded by OpenCV's ``imread`` (any depth, alpha dropped, BGR turned
+Shared by the loaders of a user's photos (:func:`lab.data.two_view.photos`, :func:`lab.data.checkerboard.folder`,
+:mod:`lab.data.stereo`). Files are decoded by OpenCV's ``imread`` (any depth, alpha dropped, BGR turned
 into RGB by :func:`lab.core.codecs.image_from_cv2`).
 """
 
@@ -11,7 +11,10 @@ import glob
 import os
 
 from lab.core import Image, InvalidValue
-from lab.data.checkerboard import IMAGE_SUFFIXES  # the endings OpenCV's imread decodes
+
+#: File-name endings OpenCV's ``imread`` decodes.
+IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".jpe", ".bmp", ".dib", ".tif", ".tiff", ".webp", ".pbm", ".pgm",
+                  ".ppm", ".pxm", ".pnm", ".sr", ".ras", ".exr", ".hdr", ".pic", ".jp2")
 
 
 def check_folder(path: str) -> str:
