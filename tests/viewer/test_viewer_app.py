@@ -4,8 +4,6 @@ steps is plotted, Cancel works, and changes made behind the viewer's back (REST)
 
 from __future__ import annotations
 
-import contextlib
-import io
 import time
 from dataclasses import dataclass
 from typing import Annotated, Generator, Literal
@@ -14,24 +12,10 @@ import numpy as np
 import pytest
 import viser
 
-from lab.core import Image, ImageSet, Loaded, Pipeline, Progress, Range, SessionStore, metric
+from lab.core import Image, ImageSet, Loaded, Pipeline, Progress, Range, metric
 from lab.viewer.app import (ClientView, ModuleCatalog, add_control_widget, format_number, metrics_markdown,
                             nice_step, widget_kind, widget_value)
 from toy_pipeline import TOY
-
-
-@pytest.fixture
-def server():
-    with contextlib.redirect_stdout(io.StringIO()):
-        srv = viser.ViserServer(host="127.0.0.1", port=0, verbose=False)
-    yield srv
-    with contextlib.redirect_stdout(io.StringIO()):
-        srv.stop()
-
-
-@pytest.fixture
-def store():
-    return SessionStore(max_sessions=8)
 
 
 def make_view(server, store, modules=None, **kwargs) -> ClientView:

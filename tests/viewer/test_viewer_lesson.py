@@ -6,8 +6,6 @@ are shown in the GUI, never raised; the sandbox ends with the tab."""
 
 from __future__ import annotations
 
-import contextlib
-import io
 import sys
 from pathlib import Path
 
@@ -15,7 +13,7 @@ import numpy as np
 import pytest
 import viser
 
-from lab.core import Image, ImageSet, Points2D, SessionStore
+from lab.core import Image, ImageSet, Points2D
 from lab.core.errors import LabError
 from lab.lessons.format import LessonCatalog
 from lab.lessons.live import SideBySide
@@ -41,20 +39,6 @@ def lessons():
 @pytest.fixture(scope="module")
 def toy_lessons():
     return LessonCatalog(FIXTURES / "lessons")
-
-
-@pytest.fixture
-def server():
-    with contextlib.redirect_stdout(io.StringIO()):
-        srv = viser.ViserServer(host="127.0.0.1", port=0, verbose=False)
-    yield srv
-    with contextlib.redirect_stdout(io.StringIO()):
-        srv.stop()
-
-
-@pytest.fixture
-def store():
-    return SessionStore(max_sessions=8)
 
 
 @pytest.fixture

@@ -4,8 +4,6 @@ and charts checked pixel by pixel, and the HTML export decoded back into scene m
 from __future__ import annotations
 
 import base64
-import contextlib
-import io
 import math
 import re
 
@@ -20,15 +18,6 @@ from lab.core import (Cameras, Curve, GaussianSplats, Image, ImageSet, Mesh, Poi
 from lab.viewer import export_scene_html
 from lab.viewer.renderers import (POINT_COLORS, SEGMENT_COLORS, WORST_BAR_COLOR, Canvas, StateDrawer, curve_image,
                                   overlay_view, overlays_of, scene_extent, to_rgb8)
-
-
-@pytest.fixture
-def server():
-    with contextlib.redirect_stdout(io.StringIO()):
-        srv = viser.ViserServer(host="127.0.0.1", port=0, verbose=False)
-    yield srv
-    with contextlib.redirect_stdout(io.StringIO()):
-        srv.stop()
 
 
 @pytest.fixture
