@@ -8,10 +8,10 @@ state, its run history and a lock. Every front end (viewer, REST, CLI, grader) r
 
 from __future__ import annotations
 
-import dataclasses
 import inspect
 import threading
 import time
+import typing
 import uuid
 import zlib
 from dataclasses import dataclass, field
@@ -49,7 +49,7 @@ class DatasetSpec:
     @classmethod
     def of(cls, loader: Callable[..., Loaded], *, name: str | None = None) -> DatasetSpec:
         signature = inspect.signature(loader)
-        hints = __import__("typing").get_type_hints(loader, include_extras=True)
+        hints = typing.get_type_hints(loader, include_extras=True)
         doc = inspect.getdoc(loader) or ""
         described = _docstring_params(doc)
         options = tuple(_control_from(p.name, hints.get(p.name), p.default, described.get(p.name, ""))
@@ -445,5 +445,4 @@ def open_session(pipeline: Pipeline, dataset: str | None = None, options: dict[s
     return Session(pipeline, loaded, dataset=spec.name, options=options, seed=seed, session_id=session_id)
 
 
-__all__ = ["Loaded", "DatasetSpec", "Pipeline", "RunRecord", "Session", "open_session", "default_device",
-           "dataclasses"]
+__all__ = ["Loaded", "DatasetSpec", "Pipeline", "RunRecord", "Session", "open_session", "default_device"]

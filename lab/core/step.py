@@ -20,7 +20,6 @@ import dataclasses
 import enum
 import inspect
 import re
-import types
 import typing
 from dataclasses import dataclass
 from typing import Any, Annotated, Callable, Literal
@@ -416,7 +415,3 @@ def _metric_value(value: Any) -> Any:
     if isinstance(value, (int, np.integer)):
         return int(value)
     return float(value)
-
-
-def is_optional(annotation: Any) -> bool:
-    return typing.get_origin(annotation) in (typing.Union, types.UnionType) and type(None) in typing.get_args(annotation)
