@@ -47,7 +47,8 @@ from lab.core.pipeline import Pipeline, Session
 from lab.core.step import Control, Progress, StepSpec
 from lab.core.store import SessionStore
 from lab.core.values import VALUE_TYPES
-from lab.viewer.renderers import OVERLAY_TYPES, Canvas, StateDrawer, renderer_for, viewpoint
+from lab.viewer.interactions import Interaction, InteractionContext, interactions_for
+from lab.viewer.renderers import OVERLAY_TYPES, Canvas, StateDrawer, renderer_for, scene_extent, viewpoint
 
 log = logging.getLogger("lab.viewer")
 
@@ -354,6 +355,9 @@ class ClientView:
         self._step_handles: list[Any] = []
         self._dataset_option_handles: dict[str, Any] = {}
         self.lesson_mode: Any = None  # a LessonMode when ``lessons`` is given
+        #: The module's special interactions for the session shown (:mod:`lab.viewer.interactions`).
+        self.interactions: list[Interaction] = []
+        self._interaction_handles: list[Any] = []
         self._build_static()
         self.drawer = StateDrawer(Canvas(scene=self.scene, gui=self.gui, images=self.images_tab,
                                          plots=self.plots_tab, on_view_selected=self._view_selected))
@@ -536,6 +540,7 @@ class ClientView:
             self._build_steps()
             if self.lesson_mode is not None:
                 self.lesson_mode.attach()  # the task steps get "use my code" and "Compare with reference"
+            self._build_interactions()
             self.refresh(force=True)
         if self.is_client:
             set_page_query(self.target, session.id)
@@ -553,8 +558,69 @@ class ClientView:
         self.closed = True
         with self.lock:
             self._detach()
+            self._close_interactions()
         if self.lesson_mode is not None:
             self.lesson_mode.close()  # ends the student's sandbox
+
+    # --- the module's special interactions ---------------------------------------------------------
+    def _build_interactions(self) -> None:
+        """Replace the interactions with those of the session's module, each in a folder of its own."""
+        self._close_interactions()
+        session = self.session
+        assert session is not None
+        for index, cls in enumerate(interactions_for(session.pipeline.name)):
+            folder = self.gui.add_folder(cls.title, order=3.5 + index / 100, expand_by_default=True)
+            self._interaction_handles.append(folder)
+            ctx = InteractionContext(
+                scene=self.scene, gui=self.gui, folder=folder, images=self.images_tab, plots=self.plots_tab,
+                session=session, is_client=self.is_client, show_error=self.show_error,
+                run=lambda step, params: self._guard(lambda: self.run_with(step, params)),
+                restart=lambda options: self._guard(lambda: self.restart(options)),
+                extent=lambda: scene_extent(dict(session.state).values()))
+            try:
+                with folder:
+                    self.interactions.append(cls(ctx))
+            except Exception as exc:  # a broken interaction never takes the tab down
+                log.error("interaction %s failed to start:\n%s", cls.__name__, traceback.format_exc())
+                self.show_error(exc)
+
+    def _close_interactions(self) -> None:
+        for interaction in self.interactions:
+            try:
+                interaction.close()
+            except Exception:
+                log.error("interaction close failed:\n%s", traceback.format_exc())
+        self.interactions = []
+        for handle in self._interaction_handles:
+            try:
+                handle.remove()
+            except Exception:
+                pass
+        self._interaction_handles = []
+
+    def _update_interactions(self, state: Mapping[str, Any]) -> None:
+        for interaction in self.interactions:
+            try:
+                interaction.update(state)
+            except Exception as exc:
+                if not isinstance(exc, LabError):
+                    log.error("interaction update failed:\n%s", traceback.format_exc())
+                self.show_error(exc)
+
+    def run_with(self, step: str, params: Mapping[str, Any]) -> None:
+        """Run ``step`` with these controls (an interaction's request), like its Run button."""
+        session = self._require_session()
+        self.clear_error()
+        values = dict(params)
+        self._set_label(step, "running")
+        self.in_background(lambda: session.run(step, values, override=self.override(step)), step)
+
+    def restart(self, options: Mapping[str, Any]) -> None:
+        """Open a new session of the shown module and dataset with ``options`` changed."""
+        session = self._require_session()
+        if self.worker is not None and self.worker.is_alive():
+            raise LabError("session", "a step is still running; wait or press Cancel")
+        self.open_session(self.store.create(session.pipeline, session.dataset, {**session.options, **options}))
 
     # --- steps ------------------------------------------------------------------------------------
     def _build_steps(self) -> None:
@@ -810,6 +876,7 @@ class ClientView:
                 self.cancel_button.disabled = True
                 self._finish_progress(history)
             self.drawer.sync(state, order=self._order(state))
+            self._update_interactions(state)
             if self.drawer.errors:
                 self.show_error(LabError("drawing", "; ".join(f"{k}: {v}" for k, v in self.drawer.errors.items())))
             self.media_panel.visible = any(not renderer_for(v).in_scene for v in state.values()

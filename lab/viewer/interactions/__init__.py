@@ -1,0 +1,124 @@
+"""Module-specific viewer interactions: what the generic, per-value-type drawing cannot do.
+
+Every value of a session is drawn by its renderer (:mod:`lab.viewer.renderers`); a module adds an
+*interaction* only for what needs a click, a drag or linked views: click a pixel and see its
+epipolar line, click a pixel and see its matching-cost curves, scrub a sampler's steps.
+
+A module's interactions live in ``lab/viewer/interactions/<pipeline name>.py``, which defines
+``INTERACTIONS: list[type[Interaction]]``. Nothing else registers them: when a tab opens a session
+of pipeline ``<name>``, the viewer imports that file if it exists and builds each interaction with
+an :class:`InteractionContext` (the tab's scene and GUI, a folder of its own, the session, and
+ways to run a step or restart the dataset). After every redraw the viewer calls
+:meth:`Interaction.update` with the session's state; when the tab shows another session it calls
+:meth:`Interaction.close`.
+
+Interactions keep their math in pure functions (tested directly) and their GUI wiring thin; a
+failing callback is shown in the tab (``ctx.show_error``), never raised into viser.
+"""
+
+from __future__ import annotations
+
+import importlib
+import importlib.util
+import logging
+import traceback
+from dataclasses import dataclass
+from typing import Any, Callable, ClassVar, Mapping, TypeVar
+
+from lab.core.errors import LabError
+from lab.core.pipeline import Session
+
+log = logging.getLogger("lab.viewer")
+
+#: Scene nodes of interactions go under this root (the generic drawing owns ``/lab``).
+EXPLORE_ROOT = "/explore"
+
+H = TypeVar("H")
+
+
+@dataclass
+class InteractionContext:
+    """What an interaction may use in the tab it lives in.
+
+    ``folder`` is a GUI folder made for this interaction in the main panel; ``images`` and
+    ``plots`` are the tabs of the left media panel. ``run(step, controls)`` runs a step as its Run
+    button would (in the tab's worker thread; errors shown in the tab); ``restart(options)`` opens
+    a new session of the same module and dataset with these dataset options (e.g. a baseline
+    slider on a synthetic rig); ``extent()`` is the size of the 3D content, for marker sizes.
+    """
+
+    scene: Any
+    gui: Any
+    folder: Any
+    images: Any
+    plots: Any
+    session: Session
+    is_client: bool
+    show_error: Callable[[BaseException], None]
+    run: Callable[[str, dict[str, Any]], None]
+    restart: Callable[[dict[str, Any]], None]
+    extent: Callable[[], float]
+
+    def node(self, *parts: str) -> str:
+        """A scene node name under this module's root: ``/explore/<module>/<parts...>``."""
+        return "/".join((EXPLORE_ROOT, self.session.pipeline.name, *parts))
+
+    def guarded(self, action: Callable[..., Any]) -> Callable[..., None]:
+        """``action`` wrapped for a viser callback: what it raises is shown in the tab, not raised."""
+
+        def call(*args: Any, **kwargs: Any) -> None:
+            try:
+                action(*args, **kwargs)
+            except Exception as exc:
+                if not isinstance(exc, LabError):
+                    log.error("interaction callback failed:\n%s", traceback.format_exc())
+                self.show_error(exc)
+
+        return call
+
+
+class Interaction:
+    """Base class of a module's interaction. Subclasses build their GUI in ``__init__`` (inside
+    ``with ctx.folder:``), redraw in :meth:`update`, and :meth:`track` every handle they add so
+    that :meth:`close` removes it."""
+
+    #: The label of the interaction's GUI folder.
+    title: ClassVar[str] = "Explore"
+
+    def __init__(self, ctx: InteractionContext) -> None:
+        self.ctx = ctx
+        self.handles: list[Any] = []
+
+    def track(self, handle: H) -> H:
+        """Remember ``handle`` (a scene node or GUI element) so :meth:`close` removes it."""
+        self.handles.append(handle)
+        return handle
+
+    def update(self, state: Mapping[str, Any]) -> None:
+        """Called after every redraw with a copy of the session's state: redraw what depends on it
+        (cheaply: compare the identity of the values used last time)."""
+
+    def close(self) -> None:
+        """Remove everything this interaction added."""
+        for handle in reversed(self.handles):
+            try:
+                handle.remove()
+            except Exception:  # gone with its parent already
+                pass
+        self.handles.clear()
+
+
+def interactions_for(module: str) -> list[type[Interaction]]:
+    """The interaction classes of pipeline ``module`` (none when it has no interactions file)."""
+    name = f"{__name__}.{module}"
+    try:
+        found = importlib.util.find_spec(name)
+    except (ImportError, ValueError):
+        found = None
+    if found is None:
+        return []
+    classes = getattr(importlib.import_module(name), "INTERACTIONS", [])
+    return [c for c in classes if isinstance(c, type) and issubclass(c, Interaction)]
+
+
+__all__ = ["EXPLORE_ROOT", "Interaction", "InteractionContext", "interactions_for"]

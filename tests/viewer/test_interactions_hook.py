@@ -1,0 +1,103 @@
+"""The hook for module-specific interactions: found by the pipeline's name, built in a folder of
+their own when a session opens, updated after every redraw, closed when the tab shows another
+session; a failing interaction is shown in the tab and never breaks it."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+import lab.viewer.app as viewer_app
+from lab.core.errors import InvalidValue
+from lab.viewer.app import ClientView, ModuleCatalog
+from lab.viewer.interactions import EXPLORE_ROOT, Interaction, interactions_for
+from toy_pipeline import TOY
+
+
+class Recorder(Interaction):
+    """Draws a marker at the mean of ``cloud`` and counts updates."""
+
+    title = "Recorder"
+    made: list["Recorder"] = []
+
+    def __init__(self, ctx):
+        super().__init__(ctx)
+        self.updates: list[set[str]] = []
+        self.closed = False
+        self.button = self.track(ctx.gui.add_button("poke"))
+        self.marker = None
+        Recorder.made.append(self)
+
+    def update(self, state):
+        self.updates.append(set(state))
+        if "cloud" in state and self.marker is None:
+            centre = state["cloud"].xyz.mean(axis=0)
+            self.marker = self.track(self.ctx.scene.add_icosphere(self.ctx.node("centre"), radius=0.1,
+                                                                  position=tuple(centre)))
+
+    def poke(self, value: float):
+        if value < 0:
+            raise InvalidValue("value", "must be at least 0")
+        self.ctx.run("add_noise", {"sigma": value})
+
+    def close(self):
+        self.closed = True
+        super().close()
+
+
+class Broken(Interaction):
+    def __init__(self, ctx):
+        raise RuntimeError("broken on purpose")
+
+
+@pytest.fixture
+def view(server, store, monkeypatch):
+    Recorder.made.clear()
+    monkeypatch.setattr(viewer_app, "interactions_for", lambda name: [Recorder] if name == "toy" else [])
+    view = ClientView(server, store, ModuleCatalog({"toy": TOY}), is_client=False, background=False)
+    view.start({})
+    return view
+
+
+def test_modules_without_an_interactions_file_have_none():
+    assert interactions_for("toy") == []
+    assert interactions_for("no_such_module") == []
+
+
+def test_interaction_is_built_updated_and_closed(view, store):
+    [recorder] = view.interactions
+    assert recorder.ctx.session is view.session
+    assert recorder.updates and "images" in recorder.updates[-1]
+    view.run("lift", until=True)
+    assert "cloud" in recorder.updates[-1]
+    assert recorder.marker is not None
+    assert recorder.ctx.node("centre") == f"{EXPLORE_ROOT}/toy/centre"
+    assert recorder.ctx.extent() > 0
+    view.open_session(store.create(TOY))
+    assert recorder.closed and recorder.handles == []
+    assert len(view.interactions) == 1 and view.interactions[0] is not recorder
+
+
+def test_interaction_runs_steps_and_errors_are_shown(view):
+    [recorder] = view.interactions
+    recorder.poke(0.5)
+    assert view.session.step_status()["add_noise"] == "done"
+    recorder.ctx.guarded(recorder.poke)(-1.0)
+    assert "must be at least 0" in view.errors[-1]
+
+
+def test_restart_keeps_module_and_dataset_and_changes_options(view):
+    old = view.session
+    view.interactions[0].ctx.restart({"count": 2})
+    assert view.session is not old
+    assert view.session.options["count"] == 2 and view.session.dataset == old.dataset
+    assert len(view.session.state["images"].images) == 2
+
+
+def test_a_broken_interaction_is_shown_not_raised(server, store, monkeypatch):
+    monkeypatch.setattr(viewer_app, "interactions_for", lambda name: [Broken, Recorder])
+    view = ClientView(server, store, ModuleCatalog({"toy": TOY}), is_client=False, background=False)
+    view.start({})
+    assert any("broken on purpose" in e for e in view.errors)
+    assert [type(i) for i in view.interactions] == [Recorder]
+    assert np.isfinite(view.interactions[0].ctx.extent())
