@@ -109,3 +109,15 @@ def test_landing_page_lists_lessons_and_unavailable_modules(browser):
         broken = page.locator('[data-module="broken"]')
         assert "Not available" in broken.inner_text() and "lab.modules.broken" in broken.inner_text()
         page.close()
+
+
+def test_lesson_cards_open_the_lesson_in_the_viewer(browser, monkeypatch):
+    app = create_app(SessionStore(), modules=PIPELINES.__getitem__, module_names=list(PIPELINES),
+                     viewer_url="http://127.0.0.1:9999/", extra_routers=[_lessons_router()])
+    with serve(app) as url:
+        page = browser.new_page()
+        page.goto(url + "/")
+        page.wait_for_selector('[data-lesson="zhang"] a')
+        link = page.locator('[data-lesson="zhang"]').locator("text=Open the lesson")
+        assert link.get_attribute("href") == "http://127.0.0.1:9999/?lesson=zhang"
+        page.close()
