@@ -19,6 +19,7 @@ from typing import Any, Callable, Iterable, Sequence
 from fastapi import APIRouter, FastAPI, Request
 from fastapi.responses import FileResponse, HTMLResponse
 from fastapi.staticfiles import StaticFiles
+from fastapi_offline import FastAPIOffline
 
 import lab
 from lab.api import modules as modules_router
@@ -78,8 +79,10 @@ def create_app(store: SessionStore | None = None, *, modules: Callable[[str], Pi
     """
     if max_upload_bytes < 1:
         raise ValueError("max_upload_bytes must be positive")
-    app = FastAPI(title="Vision Lab", version=lab.__version__, description=_DESCRIPTION, openapi_tags=_TAGS,
-                  default_response_class=LabJSONResponse)
+    # fastapi-offline serves Swagger UI (v5: renders OpenAPI 3.1) and ReDoc from the package, not a CDN:
+    # /docs works on a machine with no internet, as in a classroom lab.
+    app = FastAPIOffline(title="Vision Lab", version=lab.__version__, description=_DESCRIPTION, openapi_tags=_TAGS,
+                         default_response_class=LabJSONResponse)
     app.state.store = store if store is not None else SessionStore()
     app.state.catalog = ModuleCatalog.of(modules, module_names)
     app.state.runs = RunRegistry()

@@ -121,3 +121,26 @@ def test_lesson_cards_open_the_lesson_in_the_viewer(browser, monkeypatch):
         link = page.locator('[data-lesson="zhang"]').locator("text=Open the lesson")
         assert link.get_attribute("href") == "http://127.0.0.1:9999/?lesson=zhang"
         page.close()
+
+
+def test_api_docs_render_without_a_network(browser):
+    """/docs is Swagger UI served from the package (no CDN): it renders our OpenAPI 3.1 operations
+    in a browser whose every request outside this server is refused."""
+    app = create_app(SessionStore(), modules=PIPELINES.__getitem__, module_names=list(PIPELINES))
+    with serve(app) as url:
+        page = browser.new_page()
+        outside: list[str] = []
+
+        def refuse_outside(route):
+            if not route.request.url.startswith(url):
+                outside.append(route.request.url)
+                return route.abort()
+            return route.continue_()
+
+        page.route("**/*", refuse_outside)
+        page.goto(url + "/docs")
+        page.wait_for_selector(".opblock", timeout=20000)
+        assert page.locator(".opblock").count() >= 5
+        assert "Vision Lab" in page.locator(".title").first.inner_text()
+        assert outside == []
+        page.close()
