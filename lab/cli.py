@@ -291,12 +291,16 @@ def serve(
     host: Annotated[str, typer.Option(help="Address to bind (0.0.0.0 to serve other machines).")] = "127.0.0.1",
     port: Annotated[int, typer.Option(min=1, max=65535, help="Port of the landing page and REST API.")] = 8000,
     viewer_port: Annotated[int, typer.Option(min=1, max=65535, help="Port of the 3D viewer.")] = 8080,
+    data_root: Annotated[Optional[Path], typer.Option(
+        help="Only folders under this one may be loaded as datasets (set it when serving beyond 127.0.0.1).",
+        exists=True, file_okay=False, dir_okay=True)] = None,
 ) -> None:
     """Start the landing page, the REST API and the 3D viewer (Ctrl-C stops them)."""
     with _user_errors():
         from lab.server import serve as start_server
 
-        start_server(host=host, port=port, viewer_port=viewer_port)
+        start_server(host=host, port=port, viewer_port=viewer_port,
+                     data_root=str(data_root) if data_root is not None else None)
 
 
 @app.command()

@@ -46,13 +46,19 @@ def _display_host(host: str) -> str:
 
 
 def _build(host: str, port: int, viewer_port: int, store: SessionStore | None,
-           modules: Mapping[str, Pipeline] | Iterable[Pipeline] | None, log_level: str):
+           modules: Mapping[str, Pipeline] | Iterable[Pipeline] | None, log_level: str, data_root: str | None):
     import uvicorn
 
     from lab.api.app import create_app
     from lab.viewer.app import ViewerApp
 
-    store = store if store is not None else SessionStore()
+    if store is None:
+        store = SessionStore(data_root=data_root)
+    elif data_root is not None:
+        raise ValueError("give data_root to the store you pass, not to serve/start")
+    if host not in ("127.0.0.1", "localhost", "::1") and store.data_root is None:
+        log.warning("serving on %s with no data root: a browser can load any folder this process can read "
+                    "as a dataset; pass --data-root FOLDER", host)
     viewer = ViewerApp(store, host=host, port=viewer_port, modules=modules).start()
     try:
         # viser moves to the next free port when the asked one is taken: link the one it got. On a
@@ -73,14 +79,16 @@ def _build(host: str, port: int, viewer_port: int, store: SessionStore | None,
 
 
 def serve(*, host: str = "127.0.0.1", port: int = 8000, viewer_port: int = 8080, store: SessionStore | None = None,
-          modules: Mapping[str, Pipeline] | Iterable[Pipeline] | None = None, log_level: str = "info") -> None:
+          modules: Mapping[str, Pipeline] | Iterable[Pipeline] | None = None, log_level: str = "info",
+          data_root: str | None = None) -> None:
     """Serve the landing page and REST API on ``port`` and the viewer on ``viewer_port``; blocks
     until interrupted (Ctrl-C / SIGTERM), then stops both.
 
     ``store`` (default: a new one) is shared by both; ``modules`` restricts what is offered
-    (default: every registered module).
+    (default: every registered module); ``data_root`` limits the folders datasets may read
+    (:class:`~lab.core.SessionStore`).
     """
-    store, viewer, viewer_url, api_server = _build(host, port, viewer_port, store, modules, log_level)
+    store, viewer, viewer_url, api_server = _build(host, port, viewer_port, store, modules, log_level, data_root)
     print(f"Vision Lab: landing page and REST API on http://{_display_host(host)}:{port} "
           f"(OpenAPI at /docs), 3D viewer on {viewer.url}", flush=True)
     try:
@@ -93,12 +101,12 @@ def serve(*, host: str = "127.0.0.1", port: int = 8000, viewer_port: int = 8080,
 
 def start(*, host: str = "127.0.0.1", port: int = 8000, viewer_port: int = 8080, store: SessionStore | None = None,
           modules: Mapping[str, Pipeline] | Iterable[Pipeline] | None = None, log_level: str = "warning",
-          timeout: float = 30.0) -> RunningLab:
+          timeout: float = 30.0, data_root: str | None = None) -> RunningLab:
     """Start the lab in background threads and return once both servers accept connections
     (for notebooks and tests); call ``.stop()`` on the result."""
     import time
 
-    store, viewer, viewer_url, api_server = _build(host, port, viewer_port, store, modules, log_level)
+    store, viewer, viewer_url, api_server = _build(host, port, viewer_port, store, modules, log_level, data_root)
     thread = threading.Thread(target=api_server.run, name="lab-api", daemon=True)
     thread.start()
     deadline = time.monotonic() + timeout

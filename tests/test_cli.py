@@ -386,16 +386,18 @@ def test_modules_json():
     assert listed[1]["datasets"][1]["takes_path"] is True
 
 
-def test_serve_calls_the_server_with_the_options(monkeypatch):
+def test_serve_calls_the_server_with_the_options(monkeypatch, tmp_path):
     calls = []
     fake = types.ModuleType("lab.server")
     fake.serve = lambda **kwargs: calls.append(kwargs)
     monkeypatch.setitem(sys.modules, "lab.server", fake)
     assert invoke("serve").exit_code == 0
-    assert invoke("serve", "--host", "0.0.0.0", "--port", "9001", "--viewer-port", "9002").exit_code == 0
-    assert calls == [{"host": "127.0.0.1", "port": 8000, "viewer_port": 8080},
-                     {"host": "0.0.0.0", "port": 9001, "viewer_port": 9002}]
+    assert invoke("serve", "--host", "0.0.0.0", "--port", "9001", "--viewer-port", "9002",
+                  "--data-root", str(tmp_path)).exit_code == 0
+    assert calls == [{"host": "127.0.0.1", "port": 8000, "viewer_port": 8080, "data_root": None},
+                     {"host": "0.0.0.0", "port": 9001, "viewer_port": 9002, "data_root": str(tmp_path)}]
     assert_one_line_error(invoke("serve", "--port", "70000"), "--port")
+    assert_one_line_error(invoke("serve", "--data-root", str(tmp_path / "missing")), "--data-root")
 
 
 def test_serve_reports_a_port_in_use_in_one_line(monkeypatch):

@@ -114,6 +114,10 @@ async def create_session(request: Request, body: SessionCreate, catalog: Catalog
                          ) -> LabJSONResponse:
     pipeline = catalog.get(body.module)
     spec = pipeline.dataset(body.dataset)
+    try:
+        store.check_path(spec, body.options)
+    except LabError as exc:
+        raise type(exc)(f"options.{exc.field}", exc.reason) from None
     session = await run_in_threadpool(_load_session, pipeline, spec, dict(body.options), body.seed)
     store.add(session)
     return LabJSONResponse(session_json(request, session), status_code=201,

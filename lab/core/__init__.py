@@ -1,6 +1,6 @@
 """The core every front end builds on: steps, pipelines, sessions, the store and value codecs."""
 
-from lab.core.errors import (Cancelled, CapacityExceeded, InvalidControl, InvalidValue, LabError, MissingInput,
+from lab.core.errors import (Cancelled, CapacityExceeded, Forbidden, InvalidControl, InvalidValue, LabError, MissingInput,
                              SessionBusy, StepFailed, UnknownName)
 from lab.core.pipeline import DatasetSpec, Loaded, Pipeline, RunRecord, Session, open_session
 from lab.core.step import Control, Progress, Range, StepSpec, describe_step, metric
@@ -9,7 +9,7 @@ from lab.core.values import (Cameras, Curve, GaussianSplats, Image, ImageSet, Me
                              Segments2D, Segments3D)
 
 __all__ = [
-    "Cancelled", "CapacityExceeded", "InvalidControl", "InvalidValue", "LabError", "MissingInput", "SessionBusy",
+    "Cancelled", "CapacityExceeded", "Forbidden", "InvalidControl", "InvalidValue", "LabError", "MissingInput", "SessionBusy",
     "StepFailed", "UnknownName", "DatasetSpec", "Loaded", "Pipeline", "RunRecord", "Session", "open_session",
     "Control", "Progress", "Range", "StepSpec", "describe_step", "metric", "SessionStore", "Cameras", "Curve",
     "GaussianSplats", "Image", "ImageSet", "Mesh", "PointCloud", "Points2D", "Segments2D", "Segments3D",

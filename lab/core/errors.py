@@ -58,6 +58,13 @@ class SessionBusy(LabError):
     kind = "busy"
 
 
+class Forbidden(LabError):
+    """The request is understood but not allowed here (a folder outside the server's data root)."""
+
+    status = 403
+    kind = "forbidden"
+
+
 class CapacityExceeded(LabError):
     """Too many live sessions, too much memory, or an upload that is too large."""
 

@@ -2,12 +2,14 @@
 
 from __future__ import annotations
 
+import os
 import threading
 import time
+from pathlib import Path
 from typing import Any
 
-from lab.core.errors import CapacityExceeded, UnknownName
-from lab.core.pipeline import Pipeline, Session, open_session
+from lab.core.errors import CapacityExceeded, Forbidden, UnknownName
+from lab.core.pipeline import DatasetSpec, Pipeline, Session, open_session
 
 
 class SessionStore:
@@ -16,13 +18,19 @@ class SessionStore:
     Sessions idle longer than ``idle_seconds`` expire. When a new session would exceed
     ``max_sessions`` or the state of all sessions exceeds ``max_bytes``, the least recently used
     idle sessions are evicted; if that is not enough, creating fails with CapacityExceeded.
+
+    ``data_root`` (a folder; default None = anywhere) is where datasets that read the server's
+    disk (option ``path``) may read: set it when serving beyond 127.0.0.1, so that a browser or a
+    script cannot load ``/etc`` or another student's folder. :meth:`check_path` enforces it for
+    the viewer and the REST API alike.
     """
 
     def __init__(self, *, max_sessions: int = 64, idle_seconds: float = 3600.0,
-                 max_bytes: int = 4 * 1024**3) -> None:
+                 max_bytes: int = 4 * 1024**3, data_root: str | os.PathLike | None = None) -> None:
         self.max_sessions = max_sessions
         self.idle_seconds = idle_seconds
         self.max_bytes = max_bytes
+        self.data_root = Path(data_root).resolve() if data_root is not None else None
         self._sessions: dict[str, Session] = {}
         self._lock = threading.Lock()
 
@@ -35,8 +43,21 @@ class SessionStore:
     def ids(self) -> list[str]:
         return list(self._sessions)
 
+    def check_path(self, spec: DatasetSpec, options: dict[str, Any] | None) -> None:
+        """Refuse (Forbidden, field ``path``) a ``path`` option outside :attr:`data_root`."""
+        if self.data_root is None or not spec.takes_path:
+            return
+        path = (options or {}).get("path")
+        if path in (None, ""):
+            return
+        resolved = Path(str(path)).expanduser().resolve()
+        if resolved != self.data_root and self.data_root not in resolved.parents:
+            raise Forbidden("path", f"{str(path)!r} is outside the folder this server reads data from "
+                                    f"({self.data_root}); put the data there or ask whoever runs the server")
+
     def create(self, pipeline: Pipeline, dataset: str | None = None, options: dict[str, Any] | None = None,
                *, seed: int = 0) -> Session:
+        self.check_path(pipeline.dataset(dataset), options)
         session = open_session(pipeline, dataset, options, seed=seed)  # loading errors leave the store as it was
         return self.add(session)
 

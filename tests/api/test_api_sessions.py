@@ -179,3 +179,30 @@ def test_warnings_of_current_results_are_listed(store):
 ])
 def test_viewer_link(viewer_url, expected):
     assert viewer_link(viewer_url, session="abc") == expected
+
+
+def listing(*, path: str) -> Loaded:
+    """The images of a folder: one gradient per file in it."""
+    import os
+
+    return gradients(count=max(1, min(8, len(os.listdir(path)))), size=4)
+
+
+LISTING = Pipeline.build(name="listing", title="Listing", summary="", steps=[add_noise], datasets=[listing])
+
+
+def test_a_data_root_forbids_folders_outside_it(tmp_path):
+    from lab.core import SessionStore
+
+    inside = tmp_path / "data" / "class"
+    inside.mkdir(parents=True)
+    (inside / "a.png").write_bytes(b"")
+    store = SessionStore(data_root=tmp_path / "data")
+    with make_client(store, modules={"listing": LISTING}.__getitem__, module_names=["listing"]) as client:
+        assert client.post("/api/sessions", json={"module": "listing", "options": {"path": str(inside)}}
+                           ).status_code == 201
+        for outside in ("/etc", str(tmp_path), str(inside / ".." / ".." / "..")):
+            body = assert_error(client.post("/api/sessions", json={"module": "listing", "options": {"path": outside}}),
+                                403, "options.path", "forbidden")
+            assert "outside the folder this server reads data from" in body["reason"]
+        assert len(store) == 1

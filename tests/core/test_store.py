@@ -5,8 +5,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from lab.core import CapacityExceeded, InvalidControl, SessionStore, UnknownName
-from toy_pipeline import TOY
+from lab.core import CapacityExceeded, Forbidden, InvalidControl, Loaded, Pipeline, SessionStore, UnknownName
+from toy_pipeline import TOY, add_noise, gradients
 
 
 def test_create_get_delete():
@@ -65,3 +65,18 @@ def test_memory_cap():
         SessionStore(max_bytes=nbytes // 2).create(TOY, options={"count": 8, "size": size})
     assert "MiB" in info.value.reason
     assert one.state["images"][0].pixels.dtype == np.float32
+
+
+def test_data_root_limits_the_path_option_of_folder_datasets(tmp_path):
+    def folder(*, path: str) -> Loaded:
+        return gradients(count=1, size=4)
+
+    pipeline = Pipeline.build(name="f", title="F", summary="", steps=[add_noise], datasets=[folder, gradients])
+    (tmp_path / "inside").mkdir()
+    store = SessionStore(data_root=tmp_path)
+    assert store.create(pipeline, "folder", {"path": str(tmp_path / "inside")}).dataset == "folder"
+    with pytest.raises(Forbidden, match="outside the folder"):
+        store.create(pipeline, "folder", {"path": str(tmp_path / "inside" / ".." / "..")})
+    assert len(store) == 1
+    assert store.create(pipeline, "gradients", {"count": 2}).dataset == "gradients"  # no path: no check
+    assert SessionStore().create(pipeline, "folder", {"path": "/"}).dataset == "folder"  # no root: anywhere
