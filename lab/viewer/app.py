@@ -46,7 +46,7 @@ from lab.core.errors import LabError, UnknownName
 from lab.core.pipeline import Pipeline, Session
 from lab.core.step import Control, Progress, StepSpec
 from lab.core.store import SessionStore
-from lab.core.values import VALUE_TYPES
+from lab.core.values import VALUE_TYPES, PointCloud
 from lab.viewer.interactions import Interaction, InteractionContext, interactions_for
 from lab.viewer.renderers import OVERLAY_TYPES, Canvas, StateDrawer, renderer_for, scene_extent, viewpoint
 
@@ -898,7 +898,7 @@ class ClientView:
         """Point the tab's camera at the 3D content the first time there is some."""
         if self._framed or not self.is_client:
             return
-        view = viewpoint(state.values())
+        view = self.framing(state)
         if view is None:
             return
         self._framed = True
@@ -910,6 +910,15 @@ class ClientView:
             camera.look_at = tuple(look_at)  # after the position, which drags look_at along
         except Exception as exc:  # cosmetic
             log.info("could not frame the camera: %s", exc)
+
+    def framing(self, state: Mapping[str, Any]) -> tuple[np.ndarray, np.ndarray] | None:
+        """``(eye, look_at)`` for the tab's camera: the state's 3D values, else what the module's
+        interactions draw (e.g. the two cameras of an epipolar pair before anything is triangulated)."""
+        view = viewpoint(state.values())
+        if view is None:
+            boxes = [b for b in (i.bounds() for i in self.interactions) if b is not None]
+            view = viewpoint([PointCloud(np.concatenate(boxes))]) if boxes else None
+        return view
 
     def _view_selected(self, image_name: str, view: int) -> None:
         with self.lock:

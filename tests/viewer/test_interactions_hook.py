@@ -45,6 +45,11 @@ class Recorder(Interaction):
         super().close()
 
 
+class Boxed(Interaction):
+    def bounds(self):
+        return np.array([[0.0, 0.0, 0.0], [2.0, 2.0, 2.0]])
+
+
 class Broken(Interaction):
     def __init__(self, ctx):
         raise RuntimeError("broken on purpose")
@@ -101,3 +106,15 @@ def test_a_broken_interaction_is_shown_not_raised(server, store, monkeypatch):
     assert any("broken on purpose" in e for e in view.errors)
     assert [type(i) for i in view.interactions] == [Recorder]
     assert np.isfinite(view.interactions[0].ctx.extent())
+
+
+def test_the_tab_frames_what_interactions_draw_when_the_state_has_no_3d_values(server, store, monkeypatch):
+    monkeypatch.setattr(viewer_app, "interactions_for", lambda name: [Recorder, Boxed])
+    view = ClientView(server, store, ModuleCatalog({"toy": TOY}), is_client=False, background=False)
+    view.start({})
+    eye, look_at = view.framing(dict(view.session.state))
+    np.testing.assert_allclose(look_at, [1.0, 1.0, 1.0])
+    view.run("lift", until=True)
+    cloud = view.session.state["cloud"]
+    _, look_at = view.framing(dict(view.session.state))
+    np.testing.assert_allclose(look_at, (cloud.xyz.min(0) + cloud.xyz.max(0)) / 2)

@@ -89,7 +89,7 @@ def test_the_picker_opens_a_lesson_beside_its_pipeline(server, store, views, les
     view.start({})
     mode = view.lesson_mode
     assert view.session.pipeline.name == "toy" and mode.lesson is None
-    assert mode.picker.options == (NO_LESSON, "01-calibration")
+    assert mode.picker.options == (NO_LESSON, *lessons.ids())
     assert mode.upload_button.disabled and mode.rows == {}
 
     mode.picker.value = "01-calibration"  # what a student's choice does

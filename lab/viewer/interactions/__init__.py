@@ -25,6 +25,8 @@ import traceback
 from dataclasses import dataclass
 from typing import Any, Callable, ClassVar, Mapping, TypeVar
 
+import numpy as np
+
 from lab.core.errors import LabError
 from lab.core.pipeline import Session
 
@@ -78,8 +80,8 @@ class InteractionContext:
 
 
 class Interaction:
-    """Base class of a module's interaction. Subclasses build their GUI in ``__init__`` (inside
-    ``with ctx.folder:``), redraw in :meth:`update`, and :meth:`track` every handle they add so
+    """Base class of a module's interaction. Subclasses build their GUI in ``__init__`` (the viewer
+    has entered ``ctx.folder`` already: GUI elements added there land in it), redraw in :meth:`update`, and :meth:`track` every handle they add so
     that :meth:`close` removes it."""
 
     #: The label of the interaction's GUI folder.
@@ -97,6 +99,11 @@ class Interaction:
     def update(self, state: Mapping[str, Any]) -> None:
         """Called after every redraw with a copy of the session's state: redraw what depends on it
         (cheaply: compare the identity of the values used last time)."""
+
+    def bounds(self) -> np.ndarray | None:
+        """``(2, 3)`` min and max corner of what this interaction draws in 3D, or None: the tab
+        frames it when the session has no 3D values of its own yet."""
+        return None
 
     def close(self) -> None:
         """Remove everything this interaction added."""
