@@ -23,6 +23,13 @@ from lab.core.errors import InvalidValue
 #: Formats :func:`write_value` writes, and the file suffix each usually has.
 VALUE_FORMATS: dict[str, str] = {"json": ".json", "npy": ".npy", "png": ".png", "ply": ".ply"}
 
+#: Formats :func:`write_reconstruction` writes a :class:`~lab.data.reconstruction.Reconstruction`
+#: in, and what ``path`` names for each.
+RECONSTRUCTION_FORMATS: dict[str, str] = {
+    "colmap": "a folder: COLMAP text model (cameras.txt, images.txt, points3D.txt)",
+    "transforms-json": "a file: nerfstudio / instant-ngp transforms.json (OpenGL camera-to-world)",
+}
+
 
 def write_value(path: str | Path, value: Any, fmt: str, *, name: str, index: int | None = None) -> Path:
     """Write one state value to ``path`` in ``fmt`` (json, npy, png or ply) through the codecs.
@@ -39,6 +46,30 @@ def write_value(path: str | Path, value: Any, fmt: str, *, name: str, index: int
     target.parent.mkdir(parents=True, exist_ok=True)
     target.write_bytes(payload)
     return target
+
+
+def write_reconstruction(path: str | Path, rec: Any, fmt: str, *, image_folder: str = "images") -> Path:
+    """Write a sparse reconstruction in ``fmt`` (a key of :data:`RECONSTRUCTION_FORMATS`).
+
+    ``colmap``: :func:`lab.data.colmap.write_colmap_text` into the folder ``path``;
+    ``transforms-json``: :func:`lab.data.transforms_json.write_transforms_json` to the file
+    ``path`` (frames at ``image_folder/<name>``). Raises :class:`InvalidValue` (field ``format``)
+    for another format or a value that is not a Reconstruction.
+    """
+    from lab.data.reconstruction import Reconstruction
+
+    if fmt not in RECONSTRUCTION_FORMATS:
+        raise InvalidValue("format", f"unknown format {fmt!r}; reconstruction formats are "
+                                     f"{list(RECONSTRUCTION_FORMATS)}")
+    if not isinstance(rec, Reconstruction):
+        raise InvalidValue("format", f"{fmt} writes a Reconstruction, not a {type(rec).__name__}")
+    if fmt == "colmap":
+        from lab.data.colmap import write_colmap_text
+
+        return write_colmap_text(path, rec)
+    from lab.data.transforms_json import write_transforms_json
+
+    return write_transforms_json(path, rec, image_folder=image_folder)
 
 
 @dataclass(frozen=True)
@@ -147,5 +178,5 @@ def read_opencv_calibration(path: str | Path) -> OpenCVCalibration:
         storage.release()
 
 
-__all__ = ["VALUE_FORMATS", "write_value", "OpenCVCalibration", "write_opencv_calibration",
-           "read_opencv_calibration"]
+__all__ = ["VALUE_FORMATS", "write_value", "RECONSTRUCTION_FORMATS", "write_reconstruction", "OpenCVCalibration",
+           "write_opencv_calibration", "read_opencv_calibration"]
