@@ -30,7 +30,10 @@ from lab.core.errors import InvalidControl, InvalidValue, LabError
 EXIT_USAGE = 2
 
 #: Formats of ``export``: the codecs' value formats plus OpenCV's calibration file.
-EXPORT_FORMATS = ("json", "npy", "png", "ply", "opencv-yaml")
+EXPORT_FORMATS = ("json", "npy", "png", "ply", "opencv-yaml", "colmap", "transforms-json")
+#: Formats that write a whole sparse reconstruction (cameras, points, tracks), made from the final
+#: state by the module's ``reconstruction_from_state`` (lab.data.reconstruction).
+RECONSTRUCTION_EXPORTS = ("colmap", "transforms-json")
 
 # Click's exception classes, whether typer vendors click (>= 0.26) or uses the package.
 _CLICK_EXCEPTION = next(c for c in typer.BadParameter.__mro__ if c.__name__ == "ClickException")
@@ -404,11 +407,30 @@ def export(
         metrics = summary(pipeline.name, session.dataset, records)["metrics"]
         if fmt == "opencv-yaml":
             written = _write_opencv_yaml(session, metrics, out)
+        elif fmt in RECONSTRUCTION_EXPORTS:
+            from lab.data.exports import write_reconstruction
+
+            written = write_reconstruction(out, _reconstruction_maker(pipeline)(session.state), fmt)
         else:
             from lab.data.exports import write_value
 
             written = write_value(out, session.get(needed[0]), fmt, name=needed[0], index=index)
-    typer.echo(f"wrote {' and '.join(needed)} ({fmt}) to {written}")
+    typer.echo(f"wrote {' and '.join(needed) or 'the reconstruction'} ({fmt}) to {written}")
+
+
+def _reconstruction_maker(pipeline) -> Callable[[dict[str, Any]], Any]:
+    """The module's ``reconstruction_from_state`` (modules that reconstruct cameras and points)."""
+    import importlib
+
+    try:
+        module = importlib.import_module(f"lab.modules.{pipeline.name}")
+    except ImportError:
+        module = None
+    maker = getattr(module, "reconstruction_from_state", None)
+    if maker is None:
+        raise InvalidValue("--format", f"module {pipeline.name!r} makes no reconstruction of cameras and points "
+                                       f"to write as colmap / transforms-json; try the sfm module")
+    return maker
 
 
 def _values_to_export(pipeline, what: str | None, fmt: str) -> list[str]:
@@ -422,6 +444,11 @@ def _values_to_export(pipeline, what: str | None, fmt: str) -> list[str]:
             raise InvalidValue("--what", f"opencv-yaml writes K and dist together; leave --what out or "
                                          f"give K, not {what!r}")
         return ["K", "dist"]
+    if fmt in RECONSTRUCTION_EXPORTS:
+        if what:
+            raise InvalidValue("--what", f"{fmt} writes the whole reconstruction; leave --what out")
+        _reconstruction_maker(pipeline)
+        return []
     if not what:
         written = sorted({name for spec in pipeline.steps for name in spec.writes})
         raise InvalidValue("--what", f"name the value to write; the steps of {pipeline.name!r} write {written}")
@@ -430,6 +457,8 @@ def _values_to_export(pipeline, what: str | None, fmt: str) -> list[str]:
 
 def _steps_for(pipeline, needed: list[str], until: str | None) -> list:
     """The steps through the last producer of ``needed`` (or through ``until`` if later)."""
+    if not needed:  # a whole reconstruction: every step, or through ``until``
+        return list(pipeline.steps[: pipeline.steps.index(pipeline.step(until)) + 1] if until else pipeline.steps)
     last = -1
     for name in needed:
         producer = pipeline.producer(name)

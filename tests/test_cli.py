@@ -347,6 +347,8 @@ def test_export_opencv_yaml_reads_back_with_filestorage(tmp_path):
     (["--what", "cloud", "--format", "ply", "--until", "add_noise"], "--until"),
     (["--what", "no_such_value", "--format", "json"], "value"),
     (["--format", "opencv-yaml"], "--format"),
+    (["--format", "colmap"], "--format"),  # the toy module makes no reconstruction
+    (["--format", "transforms-json", "--what", "cloud"], "--what"),
     (["--what", "means", "--format", "json", "--set", "add_noise.sigma=-1"], "add_noise.sigma"),
 ])
 def test_export_errors(tmp_path, args, field):
