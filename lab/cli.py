@@ -295,11 +295,12 @@ def serve(
     port: Annotated[int, typer.Option(min=1, max=65535, help="Port of the landing page and REST API.")] = 8000,
     viewer_port: Annotated[int, typer.Option(min=1, max=65535, help="Port of the 3D viewer.")] = 8080,
     data_root: Annotated[Optional[Path], typer.Option(
-        help="Only folders under this one may be loaded as datasets (set it when serving beyond 127.0.0.1).",
-        exists=True, file_okay=False, dir_okay=True)] = None,
+        help="Only folders under this one may be loaded as datasets (set it when serving beyond 127.0.0.1).")] = None,
 ) -> None:
     """Start the landing page, the REST API and the 3D viewer (Ctrl-C stops them)."""
     with _user_errors():
+        if data_root is not None and not data_root.is_dir():
+            raise InvalidValue("--data-root", f"{str(data_root)!r} is not a folder")
         from lab.server import serve as start_server
 
         start_server(host=host, port=port, viewer_port=viewer_port,
