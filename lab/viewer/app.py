@@ -358,6 +358,7 @@ class ClientView:
         #: The module's special interactions for the session shown (:mod:`lab.viewer.interactions`).
         self.interactions: list[Interaction] = []
         self._interaction_handles: list[Any] = []
+        self._carry: Any = None  # handed to the interactions of a restarted session (ctx.carried)
         self._build_static()
         self.drawer = StateDrawer(Canvas(scene=self.scene, gui=self.gui, images=self.images_tab,
                                          plots=self.plots_tab, on_view_selected=self._view_selected))
@@ -575,7 +576,7 @@ class ClientView:
                 scene=self.scene, gui=self.gui, folder=folder, images=self.images_tab, plots=self.plots_tab,
                 session=session, is_client=self.is_client, show_error=self.show_error,
                 run=lambda step, params: self._guard(lambda: self.run_with(step, params)),
-                restart=lambda options: self._guard(lambda: self.restart(options)),
+                restart=self._restart_for_interaction, carried=self._carry,
                 extent=lambda: scene_extent(dict(session.state).values()))
             try:
                 with folder:
@@ -615,12 +616,36 @@ class ClientView:
         self._set_label(step, "running")
         self.in_background(lambda: session.run(step, values, override=self.override(step)), step)
 
-    def restart(self, options: Mapping[str, Any]) -> None:
-        """Open a new session of the shown module and dataset with ``options`` changed."""
+    def restart(self, options: Mapping[str, Any], *, run_until: str | None = None,
+                params: Mapping[str, Mapping[str, Any]] | Callable[[Session], Mapping[str, Mapping[str, Any]]] | None = None,
+                carry: Any = None) -> None:
+        """Open a new session of the shown module and dataset with ``options`` changed; then run
+        every step through ``run_until`` with ``params`` (``{step: controls}``, or a function of the
+        new session giving them; controls not given come from the step widgets). ``carry`` reaches
+        the new session's interactions as ``ctx.carried``."""
         session = self._require_session()
         if self.worker is not None and self.worker.is_alive():
             raise LabError("session", "a step is still running; wait or press Cancel")
-        self.open_session(self.store.create(session.pipeline, session.dataset, {**session.options, **options}))
+        if run_until is not None:
+            session.pipeline.step(run_until)  # an unknown step: UnknownName before anything changes
+        fresh = self.store.create(session.pipeline, session.dataset, {**session.options, **options})
+        self._carry = carry
+        try:
+            self.open_session(fresh)
+        finally:
+            self._carry = None
+        if run_until is not None:
+            given = params(fresh) if callable(params) else (params or {})
+            names = [s.name for s in fresh.pipeline.steps]
+            merged = {name: {**self.step_params(name), **dict(given.get(name, {}))}
+                      for name in names[:names.index(run_until) + 1]}
+            self.in_background(lambda: self._run_until(fresh, run_until, merged), run_until)
+
+    def _restart_for_interaction(self, options: Mapping[str, Any], **kwargs: Any) -> bool:
+        """:meth:`restart` for an interaction: True when the new session opened, else the error is shown."""
+        before = self.session
+        self._guard(lambda: self.restart(options, **kwargs))
+        return self.session is not before
 
     # --- steps ------------------------------------------------------------------------------------
     def _build_steps(self) -> None:

@@ -118,3 +118,19 @@ def test_the_tab_frames_what_interactions_draw_when_the_state_has_no_3d_values(s
     cloud = view.session.state["cloud"]
     _, look_at = view.framing(dict(view.session.state))
     np.testing.assert_allclose(look_at, (cloud.xyz.min(0) + cloud.xyz.max(0)) / 2)
+
+
+def test_restart_runs_to_a_step_with_params_and_carries_to_the_new_interactions(view):
+    old = view.interactions[0]
+    assert old.ctx.restart({"count": 3}, run_until="mean_intensity",
+                           params=lambda fresh: {"add_noise": {"sigma": 0.0 if len(fresh.state["images"]) == 3 else 1.0}},
+                           carry={"note": "from the old tab"})
+    view.wait()
+    session = view.session
+    assert session.step_status()["mean_intensity"] == "done" and session.step_status()["lift"] == "ready"
+    [noise] = [r for r in session.history if r.step == "add_noise"]
+    assert noise.params["sigma"] == 0.0
+    assert view.interactions[0].ctx.carried == {"note": "from the old tab"}
+    assert not old.ctx.restart({"count": 99}) and "count" in view.errors[-1]  # out of range: shown, session kept
+    assert view.session is session and view.interactions[0].ctx.carried == {"note": "from the old tab"}
+    assert not view.interactions[0].ctx.restart({}, run_until="no_such_step") and view.session is session

@@ -44,9 +44,13 @@ class InteractionContext:
 
     ``folder`` is a GUI folder made for this interaction in the main panel; ``images`` and
     ``plots`` are the tabs of the left media panel. ``run(step, controls)`` runs a step as its Run
-    button would (in the tab's worker thread; errors shown in the tab); ``restart(options)`` opens
-    a new session of the same module and dataset with these dataset options (e.g. a baseline
-    slider on a synthetic rig); ``extent()`` is the size of the 3D content, for marker sizes.
+    button would (in the tab's worker thread; errors shown in the tab). ``restart(options, *,
+    run_until=None, params=None, carry=None) -> bool`` opens a new session of the same module and
+    dataset with these dataset options (e.g. a baseline slider on a synthetic rig), then runs every
+    step through ``run_until`` with ``params`` (``{step: controls}``, or a function of the new
+    session returning them; the rest from the step widgets), and hands ``carry`` to the new
+    session's interactions as ``ctx.carried``; it returns False (error shown) when it could not.
+    ``extent()`` is the size of the 3D content, for marker sizes.
     """
 
     scene: Any
@@ -58,8 +62,10 @@ class InteractionContext:
     is_client: bool
     show_error: Callable[[BaseException], None]
     run: Callable[[str, dict[str, Any]], None]
-    restart: Callable[[dict[str, Any]], None]
+    restart: Callable[..., bool]
     extent: Callable[[], float]
+    #: What the interactions of the previous session handed over through ``restart(carry=...)``.
+    carried: Any = None
 
     def node(self, *parts: str) -> str:
         """A scene node name under this module's root: ``/explore/<module>/<parts...>``."""
