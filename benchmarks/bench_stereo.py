@@ -22,9 +22,10 @@ the final disparity map; our kernels and OpenCV both use every CPU of the proces
 
     python benchmarks/bench_stereo.py [--repeat 7]
 
-The last line is ``RESULT {json}`` with sgm_bad2_all, sgbm_bad2_all, sgm_bad2_pred, sgbm_bad2_pred,
-sgm_coverage, sgbm_coverage, sgm_time_ratio (ours / SGBM), census_bad2_all, census_bad2_pred,
-stereobm_bad2_all, stereobm_bad2_pred, census_time_ratio (ours / StereoBM) and the timings.
+The last line is ``RESULT {json}`` with exactly the keys issue 5 names: sgm_bad2_all, sgbm_bad2_all,
+sgm_bad2_pred, sgbm_bad2_pred, sgm_time_ratio (ours / SGBM), census_bad2_pred, stereobm_bad2_pred.
+The line before, ``DETAILS {json}``, adds every method's bad-1/2/4 rates, coverage, end-point error
+and time, census_time_ratio (ours / StereoBM), the StereoBM block size chosen and the CPU count.
 """
 
 from __future__ import annotations
@@ -44,6 +45,10 @@ from lab.modules.stereo import (aggregate_costs, cost_volume, disparity_errors, 
                                 refine_subpixel, winner_take_all)
 
 MAX_DISPARITY = 63  # 64 disparities, OpenCV's numDisparities = 64
+
+#: The keys of the RESULT line, exactly those issue 5 names (rates as fractions; the ratio is ours / SGBM).
+RESULT_KEYS = ("sgm_bad2_all", "sgbm_bad2_all", "sgm_bad2_pred", "sgbm_bad2_pred", "sgm_time_ratio",
+               "census_bad2_pred", "stereobm_bad2_pred")
 
 
 def ours(left: Image, right: Image, *, method: str) -> np.ndarray:
@@ -130,16 +135,18 @@ def main() -> None:
     census_ratio = results["census"][1] / results["stereobm"][1]
     print(f"time ratio ours / OpenCV: SGM {sgm_ratio:.2f}, block matching {census_ratio:.2f}")
 
-    out = {}
+    details = {}
     for key in ("sgm", "sgbm", "census", "stereobm", "stereobm_strict"):
         errors, seconds = results[key]
-        out.update({f"{key}_bad2_all": errors["bad2_all"], f"{key}_bad2_pred": errors["bad2_pred"],
-                    f"{key}_bad1_all": errors["bad1_all"], f"{key}_bad4_all": errors["bad4_all"],
-                    f"{key}_coverage": errors["coverage"], f"{key}_epe_px": errors["epe_px"],
-                    f"{key}_time_s": seconds})
-    out.update({"sgm_time_ratio": sgm_ratio, "census_time_ratio": census_ratio, "stereobm_block": best_block,
-                "cpus": cpus})
-    print("RESULT " + json.dumps({k: round(v, 6) if isinstance(v, float) else v for k, v in out.items()}))
+        details.update({f"{key}_bad2_all": errors["bad2_all"], f"{key}_bad2_pred": errors["bad2_pred"],
+                        f"{key}_bad1_all": errors["bad1_all"], f"{key}_bad4_all": errors["bad4_all"],
+                        f"{key}_coverage": errors["coverage"], f"{key}_epe_px": errors["epe_px"],
+                        f"{key}_time_s": seconds})
+    details.update({"sgm_time_ratio": sgm_ratio, "census_time_ratio": census_ratio, "stereobm_block": best_block,
+                    "cpus": cpus})
+    details = {k: round(v, 6) if isinstance(v, float) else v for k, v in details.items()}
+    print("DETAILS " + json.dumps(details))
+    print("RESULT " + json.dumps({key: details[key] for key in RESULT_KEYS}))
 
 
 if __name__ == "__main__":

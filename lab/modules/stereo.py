@@ -201,7 +201,7 @@ def _box_rows_kernel(volume, radius, y0, y1):
     """In place, rows ``y0:y1``: each ``volume[y, :, d]`` becomes its running sums over ``2 radius + 1``
     columns (borders replicated), read from a copy of the row."""
     H, W, D = volume.shape
-    line = np.empty((W, D), np.float32)
+    line = np.empty((W, D), volume.dtype)
     sums = np.zeros(D, np.float64)
     for y in range(y0, y1):
         row = volume[y]
@@ -228,7 +228,7 @@ def _box_columns_kernel(volume, radius, factor, x0, x1):
     replicated), the rows that leave the window kept in a ring of the last ``2 radius + 2``."""
     H, W, D = volume.shape
     size = 2 * radius + 2
-    ring = np.empty((size, x1 - x0, D), np.float32)
+    ring = np.empty((size, x1 - x0, D), volume.dtype)
     acc = np.zeros((x1 - x0, D), np.float64)
     for k in range(-radius, radius + 1):
         source = volume[min(max(k, 0), H - 1)]
@@ -241,7 +241,7 @@ def _box_columns_kernel(volume, radius, factor, x0, x1):
         for x in range(x0, x1):
             for d in range(D):
                 saved[x - x0, d] = row[x, d]
-                row[x, d] = np.float32(acc[x - x0, d] * factor)
+                row[x, d] = acc[x - x0, d] * factor  # rounded to the volume's dtype
         enter = min(y + radius + 1, H - 1)
         leaving = ring[max(y - radius, 0) % size]
         if enter > y:
@@ -257,14 +257,14 @@ def _box_columns_kernel(volume, radius, factor, x0, x1):
 
 
 def _box_filter_inplace(volume: np.ndarray, window: int, factor: float) -> np.ndarray:
-    """``factor`` times the window sums of a C-contiguous float32 ``(H, W, D)`` volume, in place.
+    """``factor`` times the window sums of a C-contiguous float32 or float64 ``(H, W, D)`` volume, in place.
 
     Separable running sums, O(1) work per window whatever its size: along each row, then down the
     columns (float64 accumulators); bands of rows, then of columns, run on the thread pool.
     """
     if window == 1:
         if factor != 1.0:
-            volume *= np.float32(factor)
+            volume *= volume.dtype.type(factor)
         return volume
     H, W, _ = volume.shape
     radius = window // 2
@@ -414,6 +414,108 @@ def hamming_costs_reference(codes_left: np.ndarray, codes_right: np.ndarray, dis
     return np.bitwise_count(codes_left[:, :, None, :] ^ shifted).sum(axis=3).astype(np.float32)
 
 
+@_kernel
+def _census_row_sums(codes_left, codes_right, source, radius, reversed_row, counts, dest):
+    """Row ``source`` of the Hamming volume, summed over ``2 radius + 1`` columns (borders replicated), into
+    ``dest`` ``(W, D)`` int32. ``reversed_row`` and ``counts`` are scratch buffers."""
+    H, W, words = codes_left.shape
+    D = dest.shape[1]
+    for w in range(words):  # reversed_row[w, (W - 1 - x) + d] = codes_right[source, max(x - d, 0), w]
+        for j in range(W + D):
+            reversed_row[w, j] = codes_right[source, max(W - 1 - j, 0), w]
+    for x in range(W):
+        base = W - 1 - x
+        for d in range(D):
+            counts[x, d] = 0
+        for w in range(words):
+            code = codes_left[source, x, w]
+            for d in range(D):
+                counts[x, d] += _popcount(code ^ reversed_row[w, base + d])
+    sums = dest[0].copy()
+    for d in range(D):
+        sums[d] = 0
+    for k in range(-radius, radius + 1):
+        column = min(max(k, 0), W - 1)
+        for d in range(D):
+            sums[d] += counts[column, d]
+    for x in range(W):
+        enter = min(x + radius + 1, W - 1)
+        leave = max(x - radius, 0)
+        for d in range(D):
+            dest[x, d] = sums[d]
+            sums[d] += counts[enter, d] - counts[leave, d]
+
+
+@_kernel
+def _census_window_kernel(codes_left, codes_right, radius, factor, out, y0, y1):
+    """Rows ``y0:y1`` of the census cost volume in one pass: Hamming distances summed over the window
+    (borders replicated) times ``factor``, written to ``out`` (float32).
+
+    Each row's Hamming distances are summed along the row as they are counted; a ring holds the
+    row sums of the last ``2 radius + 2`` source rows and an integer accumulator slides down the
+    columns. The sums are exact integers, so the result equals :func:`hamming_costs` followed by
+    :func:`box_mean` (scaled), bit for bit, without writing the per-pixel volume.
+    """
+    H, W, words = codes_left.shape
+    D = out.shape[2]
+    size = 2 * radius + 2
+    ring = np.empty((size, W, D), np.int32)
+    held = np.full(size, -1, np.int64)  # the source row each slot of the ring holds
+    reversed_row = np.empty((words, W + D), np.uint64)
+    counts = np.empty((W, D), np.int32)
+    acc = np.zeros((W, D), np.int32)
+    for k in range(-radius, radius + 1):
+        source = min(max(y0 + k, 0), H - 1)
+        slot = source % size
+        if held[slot] != source:
+            _census_row_sums(codes_left, codes_right, source, radius, reversed_row, counts, ring[slot])
+            held[slot] = source
+        sums = ring[slot]
+        for x in range(W):
+            for d in range(D):
+                acc[x, d] += sums[x, d]
+    for y in range(y0, y1):
+        target = out[y]
+        for x in range(W):
+            for d in range(D):
+                target[x, d] = np.float32(acc[x, d] * factor)
+        if y + 1 >= y1:
+            break
+        enter = min(y + radius + 1, H - 1)
+        leave = max(y - radius, 0)
+        if enter == leave:  # a window taller than the image: nothing changes
+            continue
+        slot = enter % size
+        if held[slot] != enter:
+            _census_row_sums(codes_left, codes_right, enter, radius, reversed_row, counts, ring[slot])
+            held[slot] = enter
+        entering = ring[slot]
+        leaving = ring[leave % size]
+        for x in range(W):
+            for d in range(D):
+                acc[x, d] += entering[x, d] - leaving[x, d]
+
+
+def census_costs(gray_left: np.ndarray, gray_right: np.ndarray, disparities: int, window: int) -> np.ndarray:
+    """The census cost volume ``(H, W, D)`` float32: the Hamming distances of the census strings over the
+    ``window`` (:func:`census_transform`), averaged over the window and divided by the ``window^2 - 1``
+    bits of a string, so costs lie in [0, 1].
+
+    Equals ``box_mean(hamming_costs(c_l, c_r, D), window) / (window^2 - 1)`` bit for bit; one fused
+    kernel (:func:`_census_window_kernel`, bands of rows on the thread pool) never writes the
+    per-pixel Hamming volume.
+    """
+    window = _check_window(window, "census")
+    codes_left = census_transform(gray_left, window)
+    codes_right = census_transform(gray_right, window)
+    H, W, _ = codes_left.shape
+    out = np.empty((H, W, int(disparities)), np.float32)
+    factor = 1.0 / (window * window * (window * window - 1))
+    _in_parallel(_census_window_kernel, [(codes_left, codes_right, window // 2, factor, out, y0, y1)
+                                          for y0, y1 in _bands(H)])
+    return out
+
+
 def rank_transform(gray: np.ndarray, window: int) -> np.ndarray:
     """Rank of each pixel in its ``window x window`` neighbourhood: how many neighbours are darker, ``(H, W)`` int.
 
@@ -446,9 +548,7 @@ def shifted_right(values: np.ndarray, disparities: int) -> np.ndarray:
 
 
 def _pixel_volume(cost: str, a: np.ndarray, b: np.ndarray, disparities: int, window: int) -> np.ndarray:
-    """The per-pixel part of the costs that are box means of a per-pixel term (SSD, SAD, ZSAD, rank, census)."""
-    if cost == "census":
-        return hamming_costs(census_transform(a, window), census_transform(b, window), disparities)
+    """The per-pixel part of the costs that are box means of a per-pixel term (SSD, SAD, ZSAD, rank)."""
     if cost == "rank":
         a = rank_transform(a, window).astype(np.float32) / np.float32(window * window - 1)
         b = rank_transform(b, window).astype(np.float32) / np.float32(window * window - 1)
@@ -476,7 +576,8 @@ def cost_volume(left: Image, right: Image, *, cost: Cost = "census", window: Ann
       costs nothing; subtracting each window's own mean instead would not be a box filter;
     - ``ncc``: ``1 - NCC``, NCC the zero-mean normalized cross-correlation
       ``sum (a - mean a)(b - mean b) / sqrt(sum (a - mean a)^2 sum (b - mean b)^2)``
-      (TM_CCOEFF_NORMED), 1 where a window is flat;
+      (TM_CCOEFF_NORMED), 1 where a window is flat (its gray-level variance below
+      :data:`NCC_FLAT_VARIANCE`); its window moments are float64 (:func:`_ncc_volume`);
     - ``rank``: ``(1/n) sum |r_a - r_b| / (n - 1)``, ``r`` the rank transform over the window
       (Zabih and Woodfill 1994);
     - ``census``: ``(1/n) sum hamming(c_a, c_b) / (n - 1)``, ``c`` the census bit strings over
@@ -484,7 +585,8 @@ def cost_volume(left: Image, right: Image, *, cost: Cost = "census", window: Ann
 
     Every sum over a window is a box filter of a per-pixel term (or product) applied to each
     disparity slice, computed with running sums in O(1) per window (:func:`box_mean`), never by
-    a loop over the window's pixels. Color images are matched in gray.
+    a loop over the window's pixels; census sums its Hamming distances in one fused kernel
+    (:func:`census_costs`). Color images are matched in gray.
 
     Args:
         cost: the matching cost.
@@ -504,34 +606,79 @@ def cost_volume(left: Image, right: Image, *, cost: Cost = "census", window: Ann
     disparities = max_disparity + 1
     _entries_check(left.height, left.width, disparities)
     a, b = left.gray(), right.gray()
-    if cost in ("ssd", "sad", "zsad", "rank", "census"):
+    if cost == "census":
+        return census_costs(a, b, disparities, window)
+    if cost in ("ssd", "sad", "zsad", "rank"):
         per_pixel = np.ascontiguousarray(_pixel_volume(cost, a, b, disparities, window), dtype=np.float32)
-        bits = window * window - 1 if cost == "census" else 1  # census counts bits: normalize by their number
-        return _box_filter_inplace(per_pixel, window, 1.0 / (window * window * bits))
-    # nssd and ncc: box means of products, computed in place so that at most four volumes live at once
-    def mean(volume: np.ndarray) -> np.ndarray:
-        return _box_filter_inplace(volume, window, 1.0 / (window * window))
-
+        return _box_filter_inplace(per_pixel, window, 1.0 / (window * window))
+    if cost == "ncc":
+        return _ncc_volume(a, b, disparities, window)
+    # nssd: box means of products, computed in place so that at most three volumes live at once
     b_shifted = shifted_right(b, disparities)
-    energy_b = mean(np.square(b_shifted))
-    if cost == "nssd":
-        squared = np.subtract(a[:, :, None], b_shifted, out=b_shifted)
-        squared = mean(np.square(squared, out=squared))
-        energy_b *= box_mean(a * a, window)[:, :, None]
-        np.sqrt(energy_b, out=energy_b)
-        return np.divide(squared, np.maximum(energy_b, np.float32(1e-12), out=energy_b), out=squared)
-    mean_a = box_mean(a, window)[:, :, None]
-    var_a = np.maximum(box_mean(a * a, window)[:, :, None] - mean_a * mean_a, 0.0)
-    covariance = mean(a[:, :, None] * b_shifted)
-    mean_b = mean(b_shifted)
-    covariance -= mean_a * mean_b
-    variance_b = np.maximum(np.subtract(energy_b, np.square(mean_b, out=mean_b), out=energy_b), 0.0, out=energy_b)
-    denominator = np.sqrt(np.multiply(variance_b, var_a, out=variance_b), out=variance_b)
-    flat = denominator < 1e-10
-    ncc = np.divide(covariance, np.where(flat, np.float32(1.0), denominator), out=covariance)
-    ncc[flat] = 0.0
-    np.clip(ncc, -1.0, 1.0, out=ncc)
-    return np.subtract(np.float32(1.0), ncc, out=ncc)
+    energy_b = _box_filter_inplace(np.square(b_shifted), window, 1.0 / (window * window))
+    squared = np.subtract(a[:, :, None], b_shifted, out=b_shifted)
+    squared = _box_filter_inplace(np.square(squared, out=squared), window, 1.0 / (window * window))
+    energy_b *= box_mean(a * a, window)[:, :, None]
+    np.sqrt(energy_b, out=energy_b)
+    return np.divide(squared, np.maximum(energy_b, np.float32(1e-12), out=energy_b), out=squared)
+
+
+#: Entries of the float64 volumes :func:`_ncc_volume` builds at once (a few disparities at a time).
+NCC_CHUNK_ENTRIES = 2**22
+
+#: A window whose gray-level variance is below this is flat: its NCC is 0 (its cost 1). One gray
+#: level of an 8-bit image in one pixel of a 7 x 7 window gives a variance of about 3e-7.
+NCC_FLAT_VARIANCE = 1e-10
+
+
+def _box_mean64(values: np.ndarray, window: int) -> np.ndarray:
+    """:func:`box_mean` in float64 of an ``(H, W)`` or ``(H, W, D)`` array (a new array)."""
+    volume = np.array(values[:, :, None] if values.ndim == 2 else values, dtype=np.float64, order="C", copy=True)
+    _box_filter_inplace(volume, window, 1.0 / (window * window))
+    return volume[:, :, 0] if values.ndim == 2 else volume
+
+
+@_kernel
+def _ncc_from_moments(mean_a, var_a, mean_b, mean_bb, mean_ab, flat_variance, out, d0):
+    """``out[:, :, d0 + j] = 1 - clip(NCC, -1, 1)`` from float64 window means of ``b``, ``b^2`` and ``a b``
+    ``(H, W, k)`` and those of the left image; NCC = 0 where either window is flat."""
+    H, W, k = mean_b.shape
+    for y in range(H):
+        for x in range(W):
+            ma = mean_a[y, x]
+            va = var_a[y, x]
+            for j in range(k):
+                mb = mean_b[y, x, j]
+                vb = max(mean_bb[y, x, j] - mb * mb, 0.0)
+                ncc = 0.0
+                if va >= flat_variance and vb >= flat_variance:
+                    ncc = min(max((mean_ab[y, x, j] - ma * mb) / np.sqrt(va * vb), -1.0), 1.0)
+                out[y, x, d0 + j] = 1.0 - ncc
+
+
+def _ncc_volume(a: np.ndarray, b: np.ndarray, disparities: int, window: int) -> np.ndarray:
+    """``1 - NCC`` for every disparity, the window moments in float64, a few disparities at a time.
+
+    ``var = mean(x^2) - mean(x)^2`` cancels badly in float32 where a window is nearly flat (a
+    variance of 1e-6 next to a mean square of 0.25), so the moments are box means of float64
+    slices (:func:`_box_filter_inplace`); the result is rounded to float32 once. A window with a
+    variance below :data:`NCC_FLAT_VARIANCE` (in either image) gets NCC 0.
+    """
+    H, W = a.shape
+    a = a.astype(np.float64)
+    b = b.astype(np.float64)
+    mean_a = _box_mean64(a, window)
+    var_a = np.maximum(_box_mean64(a * a, window) - mean_a * mean_a, 0.0)
+    columns = _shifted_columns(W, disparities)
+    out = np.empty((H, W, disparities), np.float32)
+    chunk = max(1, min(disparities, NCC_CHUNK_ENTRIES // max(H * W, 1)))
+    for d0 in range(0, disparities, chunk):
+        b_shifted = b[:, columns[:, d0:d0 + chunk]]  # (H, W, k) float64, C-contiguous
+        mean_bb = _box_filter_inplace(b_shifted * b_shifted, window, 1.0 / (window * window))
+        mean_ab = _box_filter_inplace(np.multiply(a[:, :, None], b_shifted), window, 1.0 / (window * window))
+        mean_b = _box_filter_inplace(b_shifted, window, 1.0 / (window * window))
+        _ncc_from_moments(mean_a, var_a, mean_b, mean_bb, mean_ab, NCC_FLAT_VARIANCE, out, d0)
+    return out
 
 
 def cost_curves(left: Image, right: Image, x: int, y: int, *, costs: tuple[str, ...] = COSTS, window: int = 5,
@@ -767,6 +914,36 @@ def quantize_costs(volume: np.ndarray, scale: float) -> np.ndarray:
     return np.floor(np.asarray(volume, dtype=np.float64) * scale + 0.5).astype(np.int64)
 
 
+@_kernel
+def _range_kernel(volume, lows, highs, y0, y1, slot):
+    """Smallest and largest entry of rows ``y0:y1`` into ``lows[slot]``, ``highs[slot]`` (NaN if one is NaN)."""
+    H, W, D = volume.shape
+    low = np.inf
+    high = -np.inf
+    nan = False
+    for y in range(y0, y1):
+        for x in range(W):
+            for d in range(D):
+                value = volume[y, x, d]
+                low = min(low, value)
+                high = max(high, value)
+                nan |= value != value
+    lows[slot] = np.nan if nan else low
+    highs[slot] = np.nan if nan else high
+
+
+def _volume_range(volume: np.ndarray) -> tuple[float, float]:
+    """``(volume.min(), volume.max())`` of a float32 ``(H, W, D)`` volume in one pass, bands of rows on the
+    thread pool; NaN when the volume holds one."""
+    bands = _bands(volume.shape[0])
+    lows = np.empty(len(bands), np.float64)
+    highs = np.empty(len(bands), np.float64)
+    _in_parallel(_range_kernel, [(volume, lows, highs, y0, y1, k) for k, (y0, y1) in enumerate(bands)])
+    if np.isnan(lows).any() or np.isnan(highs).any():
+        return float("nan"), float("nan")
+    return float(lows.min()), float(highs.max())
+
+
 def _sgm_inputs(volume: np.ndarray, P1: float, P2: float, paths: int) -> tuple[np.ndarray, float, int, int]:
     """Checked non-negative costs, the quantization scale and the integer penalties."""
     volume = _check_volume(volume, "cost_volume", finite=False)
@@ -775,7 +952,7 @@ def _sgm_inputs(volume: np.ndarray, P1: float, P2: float, paths: int) -> tuple[n
     P1, P2 = float(P1), float(P2)
     if P1 < 0 or P2 < P1:
         raise InvalidControl("P2", f"the penalties must satisfy 0 <= P1 <= P2, got P1 = {P1}, P2 = {P2}")
-    low, high = (float(volume.min()), float(volume.max())) if volume.size else (0.0, 0.0)
+    low, high = _volume_range(volume) if volume.size else (0.0, 0.0)
     if not (np.isfinite(low) and np.isfinite(high)):
         raise InvalidValue("cost_volume", "contains NaN or infinite costs")
     if low < 0:  # SGM's result does not change when every cost moves by one constant
@@ -954,6 +1131,28 @@ def left_right_check(aggregated_cost: np.ndarray, disparity_wta: np.ndarray, *,
     return inside & (np.abs(left - back) <= int(max_difference))
 
 
+@_kernel
+def _costs_around_kernel(volume, centre, out, y0, y1):
+    H, W, _ = volume.shape
+    for y in range(y0, y1):
+        for x in range(W):
+            c = centre[y, x]
+            for k in range(3):
+                out[k, y, x] = volume[y, x, c - 1 + k]
+
+
+def _costs_around(volume: np.ndarray, centre: np.ndarray) -> np.ndarray:
+    """``(3, H, W)`` float64: ``C(d - 1)``, ``C(d)``, ``C(d + 1)`` of every pixel, ``d = centre`` in ``[1, D - 2]``.
+
+    ``np.take_along_axis(volume, centre[..., None] + [-1, 0, 1], axis=2)``, in a kernel: NumPy's
+    fancy indexing builds index arrays for all three axes and takes several times as long. Bands
+    of rows run on the thread pool (each pixel's read is a cache miss)."""
+    out = np.empty((3,) + centre.shape, np.float64)
+    centre = np.ascontiguousarray(centre, dtype=np.int64)
+    _in_parallel(_costs_around_kernel, [(volume, centre, out, y0, y1) for y0, y1 in _bands(centre.shape[0])])
+    return out
+
+
 def refine_subpixel(aggregated_cost: np.ndarray, disparity_wta: np.ndarray, *,
                     method: Literal["parabola", "none"] = "parabola") -> Annotated[np.ndarray, "disparity_subpixel"]:
     """Sub-pixel disparity from a parabola through the costs at ``d - 1``, ``d``, ``d + 1``.
@@ -975,9 +1174,7 @@ def refine_subpixel(aggregated_cost: np.ndarray, disparity_wta: np.ndarray, *,
     if method == "none" or D < 3:
         return out
     inner = (d >= 1) & (d <= D - 2)
-    flat = volume.reshape(-1)
-    centre = np.arange(H * W).reshape(H, W) * D + np.clip(d, 1, D - 2)  # flat index of C(d)
-    c0, c1, c2 = (flat[centre + k].astype(np.float64) for k in (-1, 0, 1))
+    c0, c1, c2 = _costs_around(volume, np.clip(d, 1, D - 2))
     curvature = c0 - 2.0 * c1 + c2
     usable = inner & (curvature > 0)
     offset = np.where(usable, (c0 - c2) / (2.0 * np.where(usable, curvature, 1.0)), 0.0)
@@ -1542,7 +1739,8 @@ __all__ = ["PIPELINE", "COSTS", "MAX_VOLUME_ENTRIES", "SGM_DIRECTIONS", "BAD_THR
            "box_mean_reference", "census_transform", "census_transform_reference", "hamming_costs",
            "hamming_costs_reference", "rank_transform", "shifted_right", "semi_global_matching", "sgm_reference",
            "quantize_costs", "right_disparity", "right_disparity_reference", "best_two_costs",
-           "best_two_costs_reference", "fill_holes", "remove_peaks", "colorize_disparity", "row_misalignment",
-           "depth_from_disparity", "disparity_errors", "error_map", "cost_curves", "volume_curve",
+           "best_two_costs_reference", "census_costs", "fill_holes", "remove_peaks", "colorize_disparity",
+           "row_misalignment", "NCC_FLAT_VARIANCE", "depth_from_disparity", "disparity_errors", "error_map",
+           "cost_curves", "volume_curve",
            "evaluate_rectification", "evaluate_winner_take_all", "evaluate_left_right", "evaluate_subpixel",
            "evaluate_disparity", "evaluate_depth"]

@@ -13,7 +13,7 @@ from scipy import ndimage
 from lab.core import Cameras, Curve, Image, InvalidControl, InvalidValue, LabError, MissingInput, PointCloud, \
     open_session
 from lab.data.stereo import motorcycle, synthetic
-from lab.geometry.rectification import StereoCalibration
+from lab.geometry.rectification import StereoCalibration, rectify_pixels, stereo_rectify
 from lab.modules import MODULES, get_pipeline
 from lab.modules import stereo as S
 from lab.modules.stereo import (COSTS, PIPELINE, aggregate_costs, best_two_costs, best_two_costs_reference, box_mean,
@@ -218,6 +218,24 @@ def test_hamming_kernel_matches_reference():
     np.testing.assert_array_equal(hamming_costs(codes_a, codes_b, 6), hamming_costs_reference(codes_a, codes_b, 6))
 
 
+@pytest.mark.parametrize("window", [3, 5, 9])
+@pytest.mark.parametrize("shape", [(13, 17), (3, 20), (1, 6)])  # windows taller than the image too
+def test_fused_census_kernel_equals_hamming_then_box_mean_bit_for_bit(window, shape, monkeypatch):
+    a, b = RNG.random(shape).astype(np.float32), RNG.random(shape).astype(np.float32)
+    disparities = min(6, shape[1])
+    hamming = hamming_costs_reference(census_transform_reference(a, window), census_transform_reference(b, window),
+                                      disparities)
+    expected = (box_mean_reference(hamming.astype(np.float64) / (window * window - 1), window)).astype(np.float32)
+    fused = S.census_costs(a, b, disparities, window)
+    np.testing.assert_allclose(fused, expected, rtol=1e-6, atol=0)
+    separate = box_mean(hamming, window) * np.float32(1.0 / (window * window - 1))
+    np.testing.assert_allclose(fused, separate, rtol=1e-6, atol=0)
+    monkeypatch.setattr(S, "_workers", lambda: 1)  # one band: the same numbers
+    np.testing.assert_array_equal(S.census_costs(a, b, disparities, window), fused)
+    monkeypatch.setattr(S, "_workers", lambda: 5)  # many thin bands
+    np.testing.assert_array_equal(S.census_costs(a, b, disparities, window), fused)
+
+
 def test_rank_transform_known_answer():
     image = np.arange(9, dtype=np.float32).reshape(3, 3)
     assert rank_transform(image, 3)[1, 1] == 4  # four of the eight neighbours are darker than the centre
@@ -292,6 +310,17 @@ def test_aggregate_costs_none_and_errors():
         winner_take_all(broken)
     with pytest.raises(InvalidValue, match=r"\(H, W, D\)"):
         aggregate_costs(volume[0])
+
+
+def test_volume_range_and_costs_around_match_numpy():
+    volume = RNG.random((9, 13, 7)).astype(np.float32) - 0.25
+    assert S._volume_range(volume) == (float(volume.min()), float(volume.max()))
+    broken = volume.copy()
+    broken[8, 12, 6] = np.nan  # in the last band
+    assert all(np.isnan(S._volume_range(broken)))
+    centre = RNG.integers(1, 6, (9, 13))
+    expected = np.take_along_axis(volume, centre[:, :, None] + np.arange(-1, 2), axis=2).transpose(2, 0, 1)
+    np.testing.assert_array_equal(S._costs_around(volume, centre), expected)
 
 
 def test_right_disparity_and_best_two_match_references():
@@ -543,6 +572,32 @@ def test_rectify_pair_refuses_a_pair_that_is_not_rectified(verged):
         rectify_pair(loaded.state["left_raw"], loaded.state["right_raw"], claimed)
 
 
+def test_rectified_epipolar_lines_agree_with_opencvs_rectification(verged):
+    """Done-when: on the synthetic verged rig (6 degrees toe-in, k1 = -0.08), true scene points rectified by
+    OpenCV (cv2.stereoRectify, cv2.undistortPoints) and by ours lie on one row of both images within 0.5 px,
+    and land on the same pixels."""
+    loaded, _ = verged
+    c = loaded.state["calibration"]
+    points = np.asarray(loaded.truth["points"])  # the raw left camera frame
+    assert len(points) >= 100
+    R1, R2, P1, P2, _, _, _ = cv2.stereoRectify(c.K_left, c.dist_left, c.K_right, c.dist_right, (320, 240), c.R,
+                                                c.T.reshape(3, 1), flags=cv2.CALIB_ZERO_DISPARITY, alpha=-1)
+    ours = stereo_rectify(c.K_left, c.dist_left, c.K_right, c.dist_right, (320, 240), c.R, c.T)
+    raw_left = cv2.projectPoints(points, np.zeros(3), np.zeros(3), c.K_left, c.dist_left)[0][:, 0]
+    raw_right = cv2.projectPoints(points, cv2.Rodrigues(c.R)[0], c.T, c.K_right, c.dist_right)[0][:, 0]
+    criteria = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 100, 1e-12)
+    opencv_left = cv2.undistortPoints(raw_left[:, None], c.K_left, c.dist_left, R=R1, P=P1, criteria=criteria)[:, 0]
+    opencv_right = cv2.undistortPoints(raw_right[:, None], c.K_right, c.dist_right, R=R2, P=P2,
+                                       criteria=criteria)[:, 0]
+    our_left = rectify_pixels(raw_left, c.K_left, c.dist_left, ours.R_left, ours.P_left)
+    our_right = rectify_pixels(raw_right, c.K_right, c.dist_right, ours.R_right, ours.P_right)
+    assert np.abs(opencv_left[:, 1] - opencv_right[:, 1]).max() < 0.5
+    assert np.abs(our_left[:, 1] - our_right[:, 1]).max() < 0.5
+    assert np.abs(our_left - opencv_left).max() < 0.5 and np.abs(our_right - opencv_right).max() < 0.5
+    raw_rows = np.abs(raw_left[:, 1] - raw_right[:, 1]).max()
+    assert raw_rows > 2.0  # the photos' epipolar lines were not horizontal
+
+
 def test_rectify_pair_errors(verged):
     loaded, _ = verged
     left, right = loaded.state["left_raw"], loaded.state["right_raw"]
@@ -612,6 +667,60 @@ def test_matching_needs_a_rectified_pair_first():
 
 
 # ----------------------------------------------------------------------------------------------------
+# The issue's Done-when: bad input gets a clear error naming the problem, and never corrupts a session
+# ----------------------------------------------------------------------------------------------------
+def test_bad_input_in_a_session_names_the_problem_and_keeps_the_state():
+    session = open_session(PIPELINE, "motorcycle", {"downsample": 4})
+    session.run("rectify_pair")
+    before = dict(session.state)
+    with pytest.raises(InvalidControl, match="larger than the image") as caught:  # 0..200 px on 185 px
+        session.run("cost_volume", {"max_disparity": 200})
+    assert caught.value.field == "max_disparity" and caught.value.status == 422
+    assert session.state.keys() == before.keys() and all(session.state[k] is v for k, v in before.items())
+    session.run("cost_volume", {"max_disparity": 16})  # the session still works
+    assert session.state["cost_volume"].shape == (125, 185, 17)
+
+
+def test_a_pair_claimed_rectified_that_is_not_is_refused_in_a_session(verged):
+    loaded, _ = verged
+    claimed = StereoCalibration.rectified(loaded.state["calibration"].K_left, 0.12)
+    session = open_session(PIPELINE, "motorcycle", {"downsample": 4})
+    session.state.update(left_raw=loaded.state["left_raw"], right_raw=loaded.state["right_raw"], calibration=claimed)
+    with pytest.raises(InvalidValue, match="not rectified") as caught:
+        session.run("rectify_pair")
+    assert caught.value.field == "calibration" and "left" not in session.state
+
+
+def test_images_of_different_sizes_and_a_zero_baseline_are_named(verged):
+    loaded, _ = verged
+    left, right = loaded.state["left_raw"], loaded.state["right_raw"]
+    with pytest.raises(InvalidValue, match="differ in size: left is 320 x 240, right is 320 x 200") as caught:
+        cost_volume(left, Image(right.pixels[:200]), max_disparity=10)
+    assert caught.value.field == "right"
+    K = loaded.state["calibration"].K_left
+    with pytest.raises(InvalidValue, match="baseline is zero") as caught:
+        StereoCalibration(K, None, K, None, np.eye(3), np.zeros(3))
+    assert caught.value.field == "T"
+    with pytest.raises(InvalidValue, match="depth cannot be triangulated") as caught:
+        reconstruct_points(np.full((240, 320), 5.0), left, K, 0.0, 0.0)
+    assert caught.value.field == "baseline"
+    with pytest.raises(InvalidControl, match="baseline"):
+        open_session(PIPELINE, "synthetic", {"baseline": 0.0})
+
+
+def test_the_cli_reports_a_disparity_range_larger_than_the_image_in_one_line():
+    from typer.testing import CliRunner
+
+    import lab.cli as cli
+
+    result = CliRunner().invoke(cli.app, ["run", "stereo", "-o", "downsample=4", "-s", "cost_volume.max_disparity=500",
+                                          "--json"])
+    assert result.exit_code == 2
+    lines = [line for line in result.stderr.splitlines() if line.strip()]
+    assert len(lines) == 1 and "max_disparity" in lines[0] and "larger than the image" in lines[0]
+
+
+# ----------------------------------------------------------------------------------------------------
 # The issue's Done-when: accuracy on the full motorcycle pair against OpenCV
 # ----------------------------------------------------------------------------------------------------
 @pytest.fixture(scope="module")
@@ -655,3 +764,30 @@ def test_our_census_block_matching_beats_stereobm_on_predicted_pixels(motorcycle
     for block, errors in motorcycle_results["stereobm"].items():
         assert ours["bad2_pred"] <= errors["bad2_pred"], block
         assert ours["bad2_all"] <= errors["bad2_all"], block
+
+
+def test_the_benchmarks_result_line_has_exactly_the_issues_keys(monkeypatch, capsys):
+    """benchmarks/bench_stereo.py, run on the motorcycle pair shrunk 4 times (fast): the last line is RESULT with
+    exactly the keys issue 5 names, rates as fractions; DETAILS before it has the rest."""
+    import importlib.util
+    import json
+    import sys
+    from pathlib import Path
+
+    path = Path(__file__).resolve().parents[2] / "benchmarks" / "bench_stereo.py"
+    spec = importlib.util.spec_from_file_location("bench_stereo", path)
+    bench = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(bench)
+    assert bench.RESULT_KEYS == ("sgm_bad2_all", "sgbm_bad2_all", "sgm_bad2_pred", "sgbm_bad2_pred", "sgm_time_ratio",
+                                 "census_bad2_pred", "stereobm_bad2_pred")
+    monkeypatch.setattr(bench, "motorcycle", lambda: motorcycle(downsample=4))
+    monkeypatch.setattr(sys, "argv", ["bench_stereo.py", "--repeat", "1"])
+    bench.main()
+    lines = capsys.readouterr().out.strip().splitlines()
+    assert lines[-1].startswith("RESULT ") and lines[-2].startswith("DETAILS ")
+    result = json.loads(lines[-1][len("RESULT "):])
+    assert tuple(result) == bench.RESULT_KEYS
+    assert all(0.0 <= result[k] <= 1.0 for k in bench.RESULT_KEYS if k != "sgm_time_ratio")
+    assert result["sgm_time_ratio"] > 0
+    details = json.loads(lines[-2][len("DETAILS "):])
+    assert details["sgm_bad2_all"] == result["sgm_bad2_all"] and 0 < details["sgm_coverage"] <= 1
