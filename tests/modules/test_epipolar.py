@@ -18,7 +18,8 @@ from lab.core import (Cameras, Curve, InvalidControl, InvalidValue, LabError, Po
 from lab.data.two_view import correspondences
 from lab.geometry.rotations import rotation_angle_deg
 from lab.modules import get_pipeline
-from lab.modules.epipolar import (PIPELINE, CollinearPoints, CoplanarPoints, DegenerateInput, MissingIntrinsics,
+from lab.modules.epipolar import (PIPELINE, CANDIDATE_NAMES, CollinearPoints, CoplanarPoints, DegenerateInput,
+                                  MissingIntrinsics,
                                   TooFewMatches, ZeroBaseline, clip_lines, compute_epipolar_lines,
                                   decompose_essential, detect_features, eight_point, enforce_rank2, epipolar_distances,
                                   epipolar_lines, epipoles, estimate_essential, estimate_fundamental_8point,
@@ -116,7 +117,8 @@ def test_pipeline_is_registered_with_the_contract_steps():
 def test_lesson_steps_take_and_return_plain_arrays():
     spec = PIPELINE.step("estimate_fundamental_8point")
     assert spec.reads == ("x1", "x2") and [c.name for c in spec.controls] == ["normalize"]
-    assert PIPELINE.step("recover_pose").reads == ("E", "x1", "x2", "K1", "K2", "inliers")
+    assert PIPELINE.step("recover_pose").reads == ("candidates", "x1", "x2", "K1", "K2", "inliers")
+    assert [c.name for c in PIPELINE.step("recover_pose").controls] == ["candidate"]
     assert PIPELINE.step("decompose_essential").reads == ("E",)
 
 
@@ -188,7 +190,7 @@ def test_a_students_8point_runs_through_the_rest(corr_session):
     session = open_session(PIPELINE, "correspondences", {"outlier_rate": 0.0, "seed": 4}, seed=4)
     assert session.run("estimate_fundamental_8point", override=student).replaced
     assert session.metrics["estimate_fundamental_8point"]["rank_of_F"] == 2
-    for step in ("estimate_essential", "recover_pose", "refine_pose"):
+    for step in ("estimate_essential", "decompose_essential", "recover_pose", "refine_pose"):
         session.run(step)
     assert session.metrics["refine_pose"]["rotation_error_deg"] < 0.2
 
@@ -198,17 +200,19 @@ def test_a_students_pose_with_the_wrong_candidate_shows_in_the_metrics():
     for step in ("estimate_fundamental_8point", "estimate_essential"):
         session.run(step)
 
-    def student(E, x1, x2, K1, K2, inliers=None):
-        return _wrong_candidate(E, x1, x2, K1, K2, inliers)
+    session.run("decompose_essential")
+
+    def student(candidates, x1, x2, K1, K2, inliers=None, *, candidate="cheirality"):
+        return _wrong_candidate(candidates, x1, x2, K1, K2, inliers)
 
     session.run("recover_pose", override=student)
     assert session.metrics["recover_pose"]["rotation_error_deg"] > 90 or \
         session.metrics["recover_pose"]["translation_direction_error_deg"] > 90
 
 
-def _wrong_candidate(E, x1, x2, K1, K2, inliers):
-    right = recover_pose(E, x1, x2, K1, K2, inliers)
-    for candidate in decompose_essential(E):
+def _wrong_candidate(candidates, x1, x2, K1, K2, inliers):
+    right = recover_pose(candidates, x1, x2, K1, K2, inliers)
+    for candidate in candidates:
         if not np.allclose(candidate, right):
             return candidate
     raise AssertionError("four equal candidates")
@@ -277,6 +281,33 @@ def test_zero_baseline(noise_px):
     loaded = correspondences(baseline=0.0, noise_px=noise_px, seed=5)
     with pytest.raises(ZeroBaseline, match="share their centre"):
         estimate_fundamental_ransac(loaded.state["x1"], loaded.state["x2"], rng=np.random.default_rng(0))
+
+
+def test_zero_baseline_at_the_8point_step():
+    exact = correspondences(baseline=0.0, noise_px=0.0, outlier_rate=0.0, seed=5)
+    with pytest.raises(ZeroBaseline, match="share their centre"):
+        estimate_fundamental_8point(exact.state["x1"], exact.state["x2"])
+    session = open_session(PIPELINE, "correspondences", {"baseline": 0.0, "noise_px": 0.0, "outlier_rate": 0.0})
+    with pytest.raises(ZeroBaseline):
+        session.run("estimate_fundamental_8point")
+    assert "F" not in session.state and session.history[-1].status == "failed"
+
+
+def test_degenerate_errors_are_lab_errors_that_name_the_input():
+    """Each degenerate input raises a lab error (HTTP 4xx / CLI exit 2) naming the input and the problem."""
+    cases = {"plane": ({"structure": "plane"}, CoplanarPoints, "one plane"),
+             "line": ({"structure": "line"}, CollinearPoints, "one line"),
+             "rotation": ({"baseline": 0.0}, ZeroBaseline, "zero baseline")}
+    for name, (options, error, words) in cases.items():
+        session = open_session(PIPELINE, "correspondences", dict(options, seed=8), seed=8)
+        with pytest.raises(error, match=words) as raised:
+            session.run("estimate_fundamental_ransac")
+        assert isinstance(raised.value, LabError) and raised.value.field == "x1", name
+    session = open_session(PIPELINE, "correspondences", {"num_points": 8, "outlier_rate": 0.0})
+    session.put("x1", session.state["x1"][:7])
+    session.put("x2", session.state["x2"][:7])
+    with pytest.raises(TooFewMatches, match="7 matches"):
+        session.run("estimate_fundamental_8point")
 
 
 def test_zero_baseline_on_rendered_photos():
@@ -647,6 +678,28 @@ def test_recover_pose_matches_cv2_recover_pose(corr_session):
     np.testing.assert_array_equal(state["pose"], pose)
 
 
+def test_recover_pose_reads_the_candidates_and_can_be_told_which(corr_session):
+    state = corr_session.state
+    args = (state["x1"], state["x2"], state["K1"], state["K2"], state["inliers"])
+    pose = recover_pose(state["candidates"], *args)
+    np.testing.assert_array_equal(pose, recover_pose(state["E"], *args))  # an E is decomposed first
+    chosen = [i for i, c in enumerate(state["candidates"]) if np.array_equal(c, pose)]
+    assert len(chosen) == 1
+    for index, name in enumerate(CANDIDATE_NAMES):
+        np.testing.assert_array_equal(recover_pose(state["candidates"], *args, candidate=name),
+                                      state["candidates"][index])
+    mirror = CANDIDATE_NAMES[(chosen[0] + 2) % 4]  # (R, -t): every point behind both cameras
+    session = open_session(PIPELINE, "correspondences", {"seed": 3}, seed=3)
+    session.run_until("recover_pose", {"recover_pose": {"candidate": mirror}})
+    session.run("refine_pose")
+    assert session.metrics["recover_pose"]["translation_direction_error_deg"] > 179
+    assert session.metrics["refine_pose"]["translation_direction_error_deg"] > 179  # Sampson cannot tell t from -t
+    with pytest.raises(InvalidValue, match=r"\(4, 3, 4\)"):
+        recover_pose(state["candidates"][:3], *args)
+    with pytest.raises(InvalidControl):
+        session.run("recover_pose", {"candidate": "R3 t"})
+
+
 def test_recover_pose_exact(clean):
     E = clean.truth["E"]
     pose = recover_pose(E, clean.state["x1"], clean.state["x2"], clean.state["K1"], clean.state["K2"])
@@ -715,3 +768,75 @@ def test_refine_points_checks_its_inputs(corr_session):
                       state["K2"], state["images"], state["inliers"])
     with pytest.raises(InvalidValue, match="rotation"):
         triangulate(state["x1"], state["x2"], 2 * state["R"], state["t"], state["K1"], state["K2"])
+
+
+# --- the fast kernels of RANSAC against their readable oracles -----------------------------------------
+def _slow_sampson_weighted_refit(F, x1, x2, iterations=3):
+    """The readable oracle of ``_sampson_weighted_refit``: Hartley's T, its inverse, homogeneous lines."""
+    from lab.geometry.homogeneous import hartley_normalization
+    from lab.modules.epipolar import _design_matrix
+
+    T1, n1 = hartley_normalization(x1)
+    T2, n2 = hartley_normalization(x2)
+    Fn = np.linalg.inv(T2).T @ F @ np.linalg.inv(T1)
+    A = _design_matrix(n1, n2)
+    h1, h2 = np.column_stack([n1, np.ones(len(n1))]), np.column_stack([n2, np.ones(len(n2))])
+    for _ in range(iterations):
+        Fx1, Ftx2 = h1 @ Fn.T, h2 @ Fn
+        gradient = np.sqrt(Fx1[:, 0] ** 2 + Fx1[:, 1] ** 2 + Ftx2[:, 0] ** 2 + Ftx2[:, 1] ** 2)
+        weighted = A / gradient[:, None]
+        Fn = enforce_rank2(np.linalg.eigh(weighted.T @ weighted)[1][:, 0].reshape(3, 3))
+    F = T2.T @ Fn @ T1
+    return F / np.linalg.norm(F)
+
+
+def test_fast_kernels_equal_their_readable_oracles(noisy):
+    from lab.geometry.homogeneous import hartley_normalization
+    from lab.modules.epipolar import (_design_matrix, _fit_masked, _hartley_fast, _minimal_fundamentals,
+                                      _normal_equations, _normal_equations_py, _sampson_weighted_refit, _similarity)
+
+    x1, x2 = noisy.state["x1"], noisy.state["x2"]
+    inliers = ~noisy.truth["outliers"]
+    samples = np.random.default_rng(3).permutation(len(x1))[:8 * 40].reshape(40, 8)
+    scale, centroid, moved = _hartley_fast(x1[samples])
+    T, expected = hartley_normalization(x1[samples])
+    np.testing.assert_allclose(_similarity(scale, centroid), T, atol=1e-12)
+    np.testing.assert_allclose(moved, expected, atol=1e-12)
+    fast = _minimal_fundamentals(x1[samples], x2[samples])
+    slow = eight_point(x1[samples], x2[samples])
+    for a, b in zip(fast, slow):
+        np.testing.assert_allclose(unit(a), unit(b), atol=1e-9)
+    a, b = x1[inliers], x2[inliers]
+    np.testing.assert_allclose(unit(_fit_masked(x1, x2, inliers)[0]), unit(eight_point(a, b)), atol=1e-10)
+    # the compiled normal equations: the plain-Python loop (their oracle) and NumPy's A^T A agree
+    for F in (np.zeros((3, 3)), noisy.truth["F"]):
+        M, n = _normal_equations(x1, x2, inliers, F)
+        M_py, n_py = _normal_equations_py(x1, x2, inliers, F)
+        np.testing.assert_allclose(M, M_py, rtol=1e-12, atol=1e-12)
+        np.testing.assert_allclose(n, n_py, rtol=1e-12)
+    s1, c1, n1 = _hartley_fast(a)
+    s2, c2, n2 = _hartley_fast(b)
+    A = _design_matrix(n1, n2)
+    M, n = _normal_equations(x1, x2, inliers, np.zeros((3, 3)))
+    np.testing.assert_allclose(M, A.T @ A, rtol=1e-10, atol=1e-9)
+    np.testing.assert_allclose(n, [s1, *c1, s2, *c2], rtol=1e-12)
+    start = eight_point(a, b)
+    np.testing.assert_allclose(unit(_sampson_weighted_refit(start, a, b)),
+                               unit(_slow_sampson_weighted_refit(start, a, b)), atol=1e-10)
+
+
+def test_homography_screen_against_opencv():
+    """The fast 4-point screen in front of cv2.findHomography: high on one plane or one centre, low on a volume."""
+    from lab.modules.epipolar import _best_homography_share, _homographies_4point
+
+    x = np.random.default_rng(0).uniform(0, 600, (4, 4, 2))
+    y = x + np.random.default_rng(1).normal(0, 20, x.shape)
+    for a, b, H in zip(x, y, _homographies_4point(x, y)):
+        expected = cv2.getPerspectiveTransform(a.astype(np.float32), b.astype(np.float32))
+        np.testing.assert_allclose(H / H[2, 2], expected, rtol=1e-4, atol=1e-6)
+    for options, low, high in (({"structure": "plane"}, 0.9, 1.0), ({"baseline": 0.0}, 0.9, 1.0),
+                               ({"structure": "plane", "noise_px": 1.0}, 0.7, 1.0), ({}, 0.0, 0.3),
+                               ({"noise_px": 2.0}, 0.0, 0.3)):
+        loaded = correspondences(outlier_rate=0.0, **options, seed=21)
+        share = _best_homography_share(loaded.state["x1"][:200], loaded.state["x2"][:200], 4.0)
+        assert low <= share <= high, options
