@@ -1,0 +1,226 @@
+"""Interactions of the diffusion module: scrub a sampler's steps, noise to shape, with the predicted x0 beside it.
+
+* **Scrub the steps** of the last sampling run (the ``trace`` value: x_t and the predicted x0 at up
+  to 101 frames): a slider picks the frame. Points: the cloud ``x_t`` in the scene and, beside it
+  (shifted along +x by 1.3 times the data's width), the cloud of predicted clean samples ``x0_hat``;
+  the trajectories of a few samples from the noise to the current frame as line segments. Digits:
+  two image grids (x_t and x0_hat) in the Images tab.
+* **Sample again** with the sampler, step count and guidance scale chosen here: changing the
+  guidance scale or the step count re-runs the ``sample`` step (the result and the scrubber update).
+  The schedule and its SNR are plotted by the generic drawing (the ``schedule_plot`` and ``snr_plot``
+  curves); the scrubber says which noise level (sigma = sqrt((1 - abar) / abar)) a frame is at.
+
+The math is in the typed functions below (tested directly); the class only wires it to viser.
+"""
+
+from __future__ import annotations
+
+from typing import Any, Mapping
+
+import numpy as np
+
+from lab.core.errors import InvalidValue
+from lab.modules.diffusion import DIGIT_SHAPE, SamplingTrace, digit_grid
+from lab.viewer.interactions import Interaction, InteractionContext
+
+#: Colours (RGB, 0-255).
+NOISY_COLOR = (90, 140, 255)
+CLEAN_COLOR = (255, 140, 40)
+TRAJECTORY_COLOR = (120, 200, 120)
+#: How many samples' trajectories are drawn.
+TRAJECTORIES = 16
+#: Where x0_hat is drawn: shifted along +x by this many widths of the data.
+BESIDE = 1.3
+
+
+# ----------------------------------------------------------------------------------------------------
+# Pure math
+# ----------------------------------------------------------------------------------------------------
+def frame_index(trace: SamplingTrace, index: int) -> int:
+    """``index`` checked against the trace's frames (``InvalidValue`` naming the range)."""
+    if not 0 <= int(index) < trace.frames:
+        raise InvalidValue("frame", f"must be in [0, {trace.frames - 1}] (the trace has {trace.frames} frames), "
+                                    f"got {index}")
+    return int(index)
+
+
+def as_3d(points: np.ndarray) -> np.ndarray:
+    """``(N, 2)`` or ``(N, 3)`` -> ``(N, 3)`` float64 (2D points at z = 0)."""
+    points = np.asarray(points, dtype=np.float64)
+    return points if points.shape[1] == 3 else np.concatenate([points, np.zeros((len(points), 3 - points.shape[1]))], 1)
+
+
+def beside_offset(trace: SamplingTrace) -> np.ndarray:
+    """``(3,)`` shift of the x0_hat cloud: along +x by ``BESIDE`` times the width of the final samples."""
+    final = as_3d(trace.x_t[-1])
+    width = float(np.ptp(final[:, 0])) if len(final) else 1.0
+    return np.array([BESIDE * max(width, 1e-6), 0.0, 0.0])
+
+
+def frame_clouds(trace: SamplingTrace, index: int) -> tuple[np.ndarray, np.ndarray]:
+    """The two clouds ``(M, 3)`` of frame ``index``: x_t where it is, x0_hat shifted beside it."""
+    index = frame_index(trace, index)
+    return as_3d(trace.x_t[index]), as_3d(trace.x0[index]) + beside_offset(trace)
+
+
+def trajectory_segments(trace: SamplingTrace, index: int, *, count: int = TRAJECTORIES) -> np.ndarray:
+    """``(count * index, 2, 3)`` line segments of the first ``count`` samples' paths from frame 0 to ``index``."""
+    index = frame_index(trace, index)
+    paths = np.stack([as_3d(frame[:count]) for frame in trace.x_t[:index + 1]])  # (F, K, 3)
+    if index == 0:
+        return np.zeros((0, 2, 3))
+    return np.stack([paths[:-1], paths[1:]], axis=2).reshape(-1, 2, 3)
+
+
+def digit_frames(trace: SamplingTrace, index: int) -> tuple[np.ndarray, np.ndarray]:
+    """The digit grids (x_t, x0_hat) of frame ``index`` as ``(H, W)`` float32 images in [0, 1]."""
+    index = frame_index(trace, index)
+    if trace.kind != "digits" or trace.x_t.shape[2] != DIGIT_SHAPE[0] * DIGIT_SHAPE[1]:
+        raise InvalidValue("trace", f"holds {trace.kind}, not 8 x 8 digits")
+    return digit_grid(trace.x_t[index]).pixels, digit_grid(trace.x0[index]).pixels
+
+
+def frame_caption(trace: SamplingTrace, index: int) -> str:
+    """One line saying where frame ``index`` is: sampler step and noise level."""
+    index = frame_index(trace, index)
+    sigma = float(trace.noise_level[index])
+    level = "pure noise" if not np.isfinite(sigma) else ("clean" if sigma == 0 else f"sigma = {sigma:.3g}")
+    return f"{trace.sampler} step {int(trace.step[index])} of {trace.steps} ({level})"
+
+
+def _rgb8(pixels: np.ndarray, scale: int = 4) -> np.ndarray:
+    gray = np.clip(np.asarray(pixels, dtype=np.float32) * 255 + 0.5, 0, 255).astype(np.uint8)
+    gray = np.repeat(np.repeat(gray, scale, axis=0), scale, axis=1)
+    return np.stack([gray] * 3, axis=2)
+
+
+# ----------------------------------------------------------------------------------------------------
+# The interaction
+# ----------------------------------------------------------------------------------------------------
+class SamplerScrubber(Interaction):
+    """Scrub a sampler's steps (points: x_t and x0_hat clouds, trajectories; digits: image grids) and re-sample."""
+
+    title = "Sampler steps"
+
+    def __init__(self, ctx: InteractionContext) -> None:  # the viewer builds it inside ``with ctx.folder``
+        super().__init__(ctx)
+        gui = ctx.gui
+        self.trace: SamplingTrace | None = None
+        self.index = 0
+        self.clouds: tuple[np.ndarray, np.ndarray] | None = None
+        self.segments = np.zeros((0, 2, 3))
+        self.grids: tuple[np.ndarray, np.ndarray] | None = None
+        self.nodes: dict[str, Any] = {}
+        self.status_md = self.track(gui.add_markdown("Run **sample** to scrub its steps."))
+        self.slider = self.track(gui.add_slider("frame", 0, 1, 1, 0, hint="scrub the sampler's steps"))
+        self.sampler_choice = self.track(gui.add_dropdown("sampler", ("ddim", "ddpm", "euler", "heun", "sde"),
+                                                          initial_value="ddim"))
+        self.steps_input = self.track(gui.add_slider("steps", 1, 200, 1, 50, hint="sampler steps (re-samples)"))
+        self.guidance_input = self.track(gui.add_slider("guidance scale", 0.0, 10.0, 0.5, 0.0,
+                                                        hint="classifier-free guidance w (conditional models)"))
+        self.sample_button = self.track(gui.add_button("Sample again"))
+        self.slider.on_update(ctx.guarded(lambda _: self.show_frame(int(self.slider.value))))
+        self.sample_button.on_click(ctx.guarded(lambda _: self.resample()))
+        self.steps_input.on_update(ctx.guarded(lambda _: self.resample()))
+        self.guidance_input.on_update(ctx.guarded(lambda _: self.resample()))
+        self.image_handles: list[Any] | None = None
+
+    # --- actions (public: tests and scripts call them) -----------------------------------------------
+    def resample(self, **controls: Any) -> None:
+        """Run ``sample`` with this folder's sampler, steps and guidance scale (``controls`` override them)."""
+        if "model" not in self.ctx.session.state:
+            raise InvalidValue("model", "train the denoiser first (step train_denoiser)")
+        params = {"sampler": str(self.sampler_choice.value), "steps": int(self.steps_input.value)}
+        guidance = float(self.guidance_input.value)
+        if guidance or self.ctx.session.state["model"].conditional:
+            params["guidance_scale"] = guidance
+        params.update(controls)
+        self.ctx.run("sample", params)
+
+    def show_frame(self, index: int) -> None:
+        """Draw frame ``index`` of the trace (clear error when there is none or it is out of range)."""
+        if self.trace is None:
+            raise InvalidValue("trace", "no sampling run yet: run step sample")
+        self.index = frame_index(self.trace, index)
+        self.status_md.content = frame_caption(self.trace, self.index)
+        if self.trace.kind == "digits":
+            self.grids = digit_frames(self.trace, self.index)
+            self._draw_digits()
+        else:
+            self.clouds = frame_clouds(self.trace, self.index)
+            self.segments = trajectory_segments(self.trace, self.index)
+            self._draw_points()
+
+    # --- redraw --------------------------------------------------------------------------------------
+    def update(self, state: Mapping[str, Any]) -> None:
+        trace = state.get("trace")
+        if trace is self.trace:
+            return
+        self.trace = trace if isinstance(trace, SamplingTrace) else None
+        if self.trace is None:
+            self._clear()
+            self.status_md.content = "Run **sample** to scrub its steps."
+            return
+        last = self.trace.frames - 1
+        self.slider.max = max(last, 1)
+        self.slider.value = last
+        self.show_frame(last)
+
+    def bounds(self) -> np.ndarray | None:
+        if self.clouds is None:
+            return None
+        both = np.concatenate(self.clouds)
+        return np.stack([both.min(axis=0), both.max(axis=0)])
+
+    def _put(self, key: str, make) -> None:
+        old = self.nodes.pop(key, None)
+        if old is not None:
+            old.remove()
+            if old in self.handles:
+                self.handles.remove(old)
+        self.nodes[key] = self.track(make())
+
+    def _draw_points(self) -> None:
+        scene = self.ctx.scene
+        size = 0.01 * max(self.ctx.extent(), 1e-3)
+        noisy, clean = self.clouds
+        self._put("x_t", lambda: scene.add_point_cloud(self.ctx.node("x_t"), noisy.astype(np.float32), NOISY_COLOR,
+                                                      point_size=size))
+        self._put("x0", lambda: scene.add_point_cloud(self.ctx.node("x0"), clean.astype(np.float32), CLEAN_COLOR,
+                                                     point_size=size))
+        if len(self.segments):
+            self._put("paths", lambda: scene.add_line_segments(self.ctx.node("trajectories"),
+                                                              self.segments.astype(np.float32), TRAJECTORY_COLOR,
+                                                              thickness=0.2 * size))
+        elif "paths" in self.nodes:
+            self._remove("paths")
+
+    def _draw_digits(self) -> None:
+        noisy, clean = (_rgb8(g) for g in self.grids)
+        if self.image_handles is None:
+            with self.ctx.images:
+                self.image_handles = [self.track(self.ctx.gui.add_image(noisy, label="x_t (sampler step)")),
+                                      self.track(self.ctx.gui.add_image(clean, label="predicted x0"))]
+        else:
+            self.image_handles[0].image = noisy
+            self.image_handles[1].image = clean
+
+    def _remove(self, key: str) -> None:
+        handle = self.nodes.pop(key, None)
+        if handle is not None:
+            handle.remove()
+            if handle in self.handles:
+                self.handles.remove(handle)
+
+    def _clear(self) -> None:
+        for key in list(self.nodes):
+            self._remove(key)
+        self.clouds = None
+        self.grids = None
+        self.segments = np.zeros((0, 2, 3))
+
+
+INTERACTIONS = [SamplerScrubber]
+
+__all__ = ["INTERACTIONS", "SamplerScrubber", "frame_index", "frame_clouds", "trajectory_segments", "digit_frames",
+           "frame_caption", "beside_offset", "as_3d"]
