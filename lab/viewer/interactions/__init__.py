@@ -85,6 +85,39 @@ class InteractionContext:
         return call
 
 
+class NamedHandles:
+    """Scene nodes and GUI handles by name: :meth:`put` replaces (removing the old handle first),
+    :meth:`drop` removes a name and everything under it (``name/...``), :meth:`clear` removes all."""
+
+    def __init__(self) -> None:
+        self.handles: dict[str, Any] = {}
+
+    def put(self, name: str, make: Callable[[], H]) -> H:
+        self.drop_exact(name)
+        handle = make()
+        self.handles[name] = handle
+        return handle
+
+    def drop_exact(self, name: str) -> None:
+        old = self.handles.pop(name, None)
+        if old is not None:
+            try:
+                old.remove()
+            except Exception:  # gone with its parent already
+                pass
+
+    def drop(self, prefix: str) -> None:
+        for name in [n for n in self.handles if n == prefix or n.startswith(prefix + "/")]:
+            self.drop_exact(name)
+
+    def names(self) -> list[str]:
+        return sorted(self.handles)
+
+    def clear(self) -> None:
+        for name in list(self.handles):
+            self.drop_exact(name)
+
+
 class Interaction:
     """Base class of a module's interaction. Subclasses build their GUI in ``__init__`` (the viewer
     has entered ``ctx.folder`` already: GUI elements added there land in it), redraw in :meth:`update`, and :meth:`track` every handle they add so
@@ -134,4 +167,4 @@ def interactions_for(module: str) -> list[type[Interaction]]:
     return [c for c in classes if isinstance(c, type) and issubclass(c, Interaction)]
 
 
-__all__ = ["EXPLORE_ROOT", "Interaction", "InteractionContext", "interactions_for"]
+__all__ = ["EXPLORE_ROOT", "Interaction", "InteractionContext", "NamedHandles", "interactions_for"]

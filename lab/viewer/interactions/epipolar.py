@@ -40,6 +40,7 @@ from lab.geometry.homogeneous import to_homogeneous
 from lab.geometry.triangulation import point_depths, projection_matrix, triangulate_dlt
 from lab.modules.epipolar import (cheirality_counts, clip_lines, epipolar_lines, epipoles, essential_candidates,
                                   evaluate_fundamental)
+from lab.viewer.interactions import NamedHandles
 from lab.viewer.interactions import Interaction, InteractionContext
 from lab.viewer.renderers import FRUSTUM_MAX_SIDE, PANEL_MAX_SIDE, PANEL_MIN_SIDE, overlay_view, to_rgb8
 
@@ -563,38 +564,6 @@ def _frustum_segments(centre: np.ndarray, corners: np.ndarray) -> np.ndarray:
     return np.concatenate([spokes, outline]).astype(np.float32)
 
 
-class _Nodes:
-    """Scene nodes by name: ``put`` replaces (removing the old handle first), ``drop`` removes a prefix."""
-
-    def __init__(self) -> None:
-        self.handles: dict[str, Any] = {}
-
-    def put(self, name: str, make: Callable[[], Any]) -> Any:
-        self.drop_exact(name)
-        handle = make()
-        self.handles[name] = handle
-        return handle
-
-    def drop_exact(self, name: str) -> None:
-        old = self.handles.pop(name, None)
-        if old is not None:
-            try:
-                old.remove()
-            except Exception:  # gone with its parent already
-                pass
-
-    def drop(self, prefix: str) -> None:
-        for name in [n for n in self.handles if n == prefix or n.startswith(prefix + "/")]:
-            self.drop_exact(name)
-
-    def names(self) -> list[str]:
-        return sorted(self.handles)
-
-    def clear(self) -> None:
-        for name in list(self.handles):
-            self.drop_exact(name)
-
-
 # ----------------------------------------------------------------------------------------------------
 # Interaction 1: click a pixel, drag a point
 # ----------------------------------------------------------------------------------------------------
@@ -607,7 +576,7 @@ class EpipolarExplorer(Interaction):
     def __init__(self, ctx: InteractionContext) -> None:  # the viewer builds it inside ``with ctx.folder``
         super().__init__(ctx)
         self.lock = threading.RLock()
-        self.nodes = _Nodes()
+        self.nodes = NamedHandles()
         self.geometry: TwoViewGeometry | None = None
         self.images: ImageSet | None = None
         self.depth = 1.0  # depth of the image planes drawn in the frustums
@@ -1022,7 +991,7 @@ class PoseCandidates(Interaction):
     def __init__(self, ctx: InteractionContext) -> None:  # the viewer builds it inside ``with ctx.folder``
         super().__init__(ctx)
         self.lock = threading.RLock()
-        self.nodes = _Nodes()
+        self.nodes = NamedHandles()
         self.analysis: CandidateAnalysis | None = None
         self._key: tuple | None = None
         self._state: Mapping[str, Any] = {}

@@ -40,6 +40,7 @@ from lab.core.errors import InvalidControl, InvalidValue, LabError, MissingInput
 from lab.core.values import Image, Points2D
 from lab.modules.stereo import (COSTS, MAX_VOLUME_ENTRIES, colorize_disparity, cost_curves, depth_from_disparity,
                                 disparity_errors, error_map)
+from lab.viewer.interactions import NamedHandles
 from lab.viewer.interactions import Interaction, InteractionContext
 from lab.viewer.interactions.epipolar import click_to_pixel, draw_overlays, image_placement, lift_pixels
 from lab.viewer.renderers import FRUSTUM_MAX_SIDE, PANEL_MIN_SIDE, overlay_view
@@ -405,40 +406,8 @@ def rig_segments(K: np.ndarray, baseline: float, width: int, height: int, depth:
 
 
 # ----------------------------------------------------------------------------------------------------
-# Scene nodes by name
+# Guarded actions
 # ----------------------------------------------------------------------------------------------------
-class _Nodes:
-    """Scene nodes by name: ``put`` replaces (removing the old handle first), ``drop`` removes a prefix."""
-
-    def __init__(self) -> None:
-        self.handles: dict[str, Any] = {}
-
-    def put(self, name: str, make: Callable[[], Any]) -> Any:
-        self.drop_exact(name)
-        handle = make()
-        self.handles[name] = handle
-        return handle
-
-    def drop_exact(self, name: str) -> None:
-        old = self.handles.pop(name, None)
-        if old is not None:
-            try:
-                old.remove()
-            except Exception:  # gone with its parent already
-                pass
-
-    def drop(self, prefix: str) -> None:
-        for name in [n for n in self.handles if n == prefix or n.startswith(prefix + "/")]:
-            self.drop_exact(name)
-
-    def names(self) -> list[str]:
-        return sorted(self.handles)
-
-    def clear(self) -> None:
-        for name in list(self.handles):
-            self.drop_exact(name)
-
-
 def _safely(ctx: InteractionContext, action: Callable[[], Any]) -> Any:
     """Run ``action``; what it raises is shown in the tab (as a viser callback's error would be). Returns its
     result, None on error."""
@@ -583,7 +552,7 @@ class CostCurveExplorer(Interaction):
     def __init__(self, ctx: InteractionContext) -> None:  # the viewer builds it inside ``with ctx.folder``
         super().__init__(ctx)
         self.lock = threading.RLock()
-        self.nodes = _Nodes()
+        self.nodes = NamedHandles()
         self.curves: CostCurves | None = None
         self.settings: MatchingSettings | None = None
         self.left: Image | None = None

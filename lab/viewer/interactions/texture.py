@@ -28,6 +28,7 @@ from lab.core.errors import InvalidValue, MissingInput
 from lab.core.values import Image, Mesh
 from lab.modules.texture import (EfrosLeungTrace, PixelMatches, QuiltLayout, efros_leung_pixel_matches,
                                  parametric_surface, textured_trimesh)
+from lab.viewer.interactions import NamedHandles
 from lab.viewer.interactions import Interaction, InteractionContext
 from lab.viewer.renderers import to_rgb8
 
@@ -195,31 +196,6 @@ def _rectangle(plane: Plane, top: float, left: float, height: float, width: floa
     return np.stack([corners, np.roll(corners, -1, axis=0)], axis=1).astype(np.float32)
 
 
-class _Nodes:
-    """Scene nodes and GUI handles by name: ``put`` replaces (removing the old one first)."""
-
-    def __init__(self) -> None:
-        self.handles: dict[str, Any] = {}
-
-    def put(self, name: str, make: Callable[[], Any]) -> Any:
-        self.drop(name)
-        handle = make()
-        self.handles[name] = handle
-        return handle
-
-    def drop(self, name: str) -> None:
-        old = self.handles.pop(name, None)
-        if old is not None:
-            try:
-                old.remove()
-            except Exception:  # gone with its parent already
-                pass
-
-    def clear(self) -> None:
-        for name in list(self.handles):
-            self.drop(name)
-
-
 # ----------------------------------------------------------------------------------------------------
 # Interaction 1: Efros–Leung growth and a clicked pixel's matches
 # ----------------------------------------------------------------------------------------------------
@@ -231,7 +207,7 @@ class GrowthExplorer(Interaction):
     def __init__(self, ctx: InteractionContext) -> None:
         super().__init__(ctx)
         gui = ctx.gui
-        self.nodes = _Nodes()
+        self.nodes = NamedHandles()
         self.texture: Image | None = None
         self.trace: EfrosLeungTrace | None = None
         self.sample: Image | None = None
@@ -398,7 +374,7 @@ class QuiltExplorer(Interaction):
     def __init__(self, ctx: InteractionContext) -> None:
         super().__init__(ctx)
         gui = ctx.gui
-        self.nodes = _Nodes()
+        self.nodes = NamedHandles()
         self.layout: QuiltLayout | None = None
         self.quilting: Image | None = None
         self.block: int | None = None
@@ -511,7 +487,7 @@ class MeshViewer(Interaction):
     def __init__(self, ctx: InteractionContext) -> None:
         super().__init__(ctx)
         gui = ctx.gui
-        self.nodes = _Nodes()
+        self.nodes = NamedHandles()
         self.state: Mapping[str, Any] = {}
         self.shown: tuple[str, str, int, int] | None = None
         self.texture = self.track(gui.add_dropdown("texture", TEXTURES, initial_value="sample"))
