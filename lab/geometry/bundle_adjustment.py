@@ -302,6 +302,7 @@ def bundle_adjust(K: np.ndarray, R: np.ndarray, t: np.ndarray, points: np.ndarra
                   point_indices: np.ndarray, observations: np.ndarray, *, loss: str = "huber", f_scale: float = 1.0,
                   refine_intrinsics: bool = False, fixed_cameras: tuple[int, ...] = (0,), fix_scale: bool = True,
                   max_iterations: int = 50, jacobian: str = "analytic", guard: str = "rms",
+                  sparsity: np.ndarray | scipy.sparse.spmatrix | None = None,
                   on_iteration: Callable[[int, float], None] | None = None) -> BundleResult:
     """Refine all cameras and points by minimizing the robust reprojection error (sparse trust region).
 
@@ -334,6 +335,11 @@ def bundle_adjust(K: np.ndarray, R: np.ndarray, t: np.ndarray, points: np.ndarra
         fix_scale: hold the scale as described above.
         max_iterations: most trust-region iterations.
         jacobian: ``"analytic"`` or ``"2-point"`` (finite differences with ``jac_sparsity``).
+        sparsity: with ``jacobian="2-point"``, the pattern the finite differences are grouped by,
+            over all parameters (``(2M, N*cp + ip + 3P)`` as :func:`bundle_sparsity` lays it out;
+            the held parameters' columns are dropped here). Default: :func:`bundle_sparsity`'s.
+            Entries it leaves out get no derivative: a wrong pattern slows or stalls the solver
+            (what lesson 04 lets a student see).
         guard: what must fall for the result to be kept: ``"rms"`` (the RMS reprojection error
             over all observations) or ``"robust_cost"`` (the cost minimized: with outliers among
             the observations a robust loss may rightly let their errors, and the RMS, grow).
@@ -454,9 +460,17 @@ def bundle_adjust(K: np.ndarray, R: np.ndarray, t: np.ndarray, points: np.ndarra
     if len(free_index) == 0:
         solution = x0
     else:
-        sparsity = scipy.sparse.csr_matrix((np.ones(len(jac_rows), dtype=np.int8), (jac_rows, jac_cols)), shape=shape)
+        if sparsity is None:
+            pattern = scipy.sparse.csr_matrix((np.ones(len(jac_rows), dtype=np.int8), (jac_rows, jac_cols)),
+                                              shape=shape)
+        else:
+            given = scipy.sparse.csr_matrix(sparsity)
+            if given.shape != (shape[0], full0.size):
+                raise InvalidValue("sparsity", f"expected shape {(shape[0], full0.size)} (2 rows per observation, "
+                                               f"a column per parameter), got {given.shape}")
+            pattern = (given[:, free_index] != 0).astype(np.int8)
         result = least_squares(residuals, x0, jac=jac if jacobian == "analytic" else "2-point",
-                               jac_sparsity=None if jacobian == "analytic" else sparsity,
+                               jac_sparsity=None if jacobian == "analytic" else pattern,
                                method="trf", x_scale="jac", loss=robust_loss(loss), f_scale=float(f_scale),
                                tr_solver="lsmr",
                                max_nfev=4 * int(max_iterations) + 10, callback=callback)

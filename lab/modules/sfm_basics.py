@@ -45,16 +45,14 @@ from dataclasses import dataclass
 from typing import Annotated, Any, Literal
 
 import numpy as np
-import scipy.sparse
-from scipy.optimize import least_squares
 
 from lab.core import (Cameras, Curve, InvalidControl, InvalidValue, Loaded, Pipeline, PointCloud, Points2D, Range,
                       metric)
 from lab.data.scenes.cameras import intrinsics, orbit_cameras
-from lab.geometry.bundle_adjustment import LOSSES, bundle_sparsity, project_with_jacobians, robust_loss
+from lab.geometry.bundle_adjustment import LOSSES, bundle_adjust, bundle_sparsity
 from lab.geometry.camera import as_intrinsics
 from lab.geometry.pnp import MIN_CORRESPONDENCES, pnp_dlt, refine_pnp
-from lab.geometry.rotations import matrix_to_rotvec, nearest_rotation, rotation_angle_deg, rotvec_to_matrix
+from lab.geometry.rotations import nearest_rotation, rotation_angle_deg
 from lab.geometry.triangulation import projection_matrix, refine_points, triangulate_dlt
 
 #: Parameters per camera in the bundle: axis-angle rotation (3) and translation (3).
@@ -451,14 +449,13 @@ def bundle_adjust_scene(poses: np.ndarray, points: np.ndarray, observations: Poi
 
     Minimizes ``sum_i rho(|pi(K (R_c X_p + t_c)) - x_i|^2)`` over every camera but the first (held:
     it fixes the gauge's rotation and translation) and every point with
-    ``scipy.optimize.least_squares(method="trf", jac="2-point", jac_sparsity=...)``. SciPy groups
+    :func:`lab.geometry.bundle_adjustment.bundle_adjust` with ``jacobian="2-point"`` and the state's
+    pattern (``scipy.optimize.least_squares(method="trf", jac="2-point", jac_sparsity=...)``). SciPy groups
     columns that share no row of the pattern and perturbs each group at once, and takes every entry
     outside the pattern as zero: a pattern that misses entries leaves those parameters without
     derivatives, one with extra entries costs evaluations (the metrics ``sparsity_missing`` and
     ``sparsity_extra`` count both against :func:`lab.geometry.bundle_adjustment.bundle_sparsity`).
-    Residuals come from :func:`lab.geometry.bundle_adjustment.project_with_jacobians`. The result is
-    kept only when the RMS error falls. This is :func:`lab.geometry.bundle_adjustment.bundle_adjust` with
-    ``jacobian="2-point"``, except that the pattern is the state's ``sparsity``.
+    The result is kept only when the RMS error falls.
 
     Args:
         poses: ``(V, 3, 4)``; points: ``(N, 3)``; observations, K: as above.
@@ -489,49 +486,12 @@ def bundle_adjust_scene(poses: np.ndarray, points: np.ndarray, observations: Poi
     needed = bundle_sparsity(cams, pts, V, N, camera_params=CAMERA_PARAMS).toarray().astype(bool)
     marked = pattern != 0
     missing, extra = int(np.sum(needed & ~marked)), int(np.sum(marked & ~needed))
-    intrinsics_each = np.broadcast_to([K[0, 0], K[1, 1], K[0, 2], K[1, 2]], (M, 4))
-    skews = np.full(M, K[0, 1])
-    held = np.concatenate([matrix_to_rotvec(P[0, :, :3]), P[0, :, 3]])
-
-    def unpack(params: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        cameras = np.concatenate([held, params[: CAMERA_PARAMS * (V - 1)]]).reshape(V, CAMERA_PARAMS)
-        return cameras, params[CAMERA_PARAMS * (V - 1):].reshape(N, 3)
-
-    def residuals(params: np.ndarray) -> np.ndarray:
-        cameras, Xp = unpack(params)
-        uv, _ = project_with_jacobians(cameras[:, :3], cameras[:, 3:], Xp[pts], intrinsics_each, skews,
-                                       cameras=cams, jacobians=False)
-        return (uv - obs).ravel()
-
-    cameras0 = np.concatenate([matrix_to_rotvec(P[:, :, :3]), P[:, :, 3]], axis=1)
-    x0 = np.concatenate([cameras0[1:].ravel(), X.ravel()])
-    r0 = residuals(x0)
-    if not np.all(np.isfinite(r0)):
-        raise InvalidValue("points", "some points project to infinity (they lie in a camera's focal plane)")
-    history = [_rms(np.linalg.norm(r0.reshape(-1, 2), axis=1))]
-
-    def callback(intermediate_result) -> None:
-        history.append(_rms(np.linalg.norm(residuals(intermediate_result.x).reshape(-1, 2), axis=1)))
-
-    free = scipy.sparse.csr_matrix(marked[:, CAMERA_PARAMS:].astype(np.int8))  # camera 0 is held
-    evaluations = 0
-    solution = x0
-    if free.nnz:
-        with np.errstate(all="ignore"):
-            result = least_squares(residuals, x0, jac="2-point", jac_sparsity=free, method="trf", x_scale="jac",
-                                   loss=robust_loss(loss), f_scale=float(f_scale), tr_solver="lsmr",
-                                   max_nfev=int(max_iterations), callback=callback)
-        evaluations = int(result.njev)
-        solution = result.x
-    r1 = residuals(solution)
-    rms_before = history[0]
-    rms_after = _rms(np.linalg.norm(r1.reshape(-1, 2), axis=1)) if np.all(np.isfinite(r1)) else np.inf
-    improved = bool(rms_after < rms_before)
-    if not improved:
-        solution, rms_after = x0, rms_before
-    cameras, Xp = unpack(solution)
-    out = _as_poses(rotvec_to_matrix(cameras[:, :3]), cameras[:, 3:])
-    out[0] = P[0]
+    result = bundle_adjust(K, P[:, :, :3], P[:, :, 3], X, cams, pts, obs, loss=loss, f_scale=float(f_scale),
+                           fixed_cameras=(0,), fix_scale=False, max_iterations=int(max_iterations),
+                           jacobian="2-point", sparsity=marked)
+    out = _as_poses(result.R, result.t)
+    Xp, history = result.points, result.cost_history
+    rms_before, rms_after, evaluations, improved = result.rms_before, result.rms_after, result.iterations, result.improved
     cost = Curve(np.arange(len(history)), np.array(history), title="Bundle adjustment", xlabel="iteration",
                  ylabel="RMS reprojection error (px)")
     return BundleAdjusted(ba_poses=out, ba_points=Xp.copy(), ba_cameras=_cameras(out, K, image_size),

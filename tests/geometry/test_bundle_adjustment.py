@@ -340,3 +340,19 @@ def test_bundle_adjust_is_equivariant_under_a_world_similarity():
     assert moved.rms_after < 1e-5 and plain.rms_after < 1e-5
     np.testing.assert_allclose(moved.points, s * plain.points @ Q.T + d, atol=1e-5)
     assert rotation_angle_deg(moved.R, plain.R @ Q.T).max() < 1e-5
+
+
+def test_bundle_adjust_groups_finite_differences_by_a_given_pattern():
+    R, t, X, cams, pts, uv = _scene(views=5, count=120, seed=6)
+    R0, t0, X0 = _perturb(R, t, X, seed=7)
+    pattern = bundle_sparsity(cams, pts, len(R), len(X))
+    default = bundle_adjust(K, R0, t0, X0, cams, pts, uv, jacobian="2-point", fix_scale=False)
+    given = bundle_adjust(K, R0, t0, X0, cams, pts, uv, jacobian="2-point", fix_scale=False, sparsity=pattern.toarray())
+    np.testing.assert_allclose(given.points, default.points, atol=1e-9)
+    assert given.rms_after < 1e-3
+    no_points = pattern.toarray()
+    no_points[:, 6 * len(R):] = 0  # the point columns left out: points get no derivatives, the error stays
+    stalled = bundle_adjust(K, R0, t0, X0, cams, pts, uv, jacobian="2-point", fix_scale=False, sparsity=no_points)
+    assert stalled.rms_after > 10 * given.rms_after
+    with pytest.raises(InvalidValue, match="sparsity"):
+        bundle_adjust(K, R0, t0, X0, cams, pts, uv, jacobian="2-point", sparsity=no_points[:, :-1])
