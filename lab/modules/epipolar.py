@@ -70,6 +70,14 @@ from lab.geometry.triangulation import refine_points as refine_point_positions
 #: Correspondences per minimal sample of the 8-point algorithm.
 SAMPLE_SIZE = 8
 
+#: OpenCV's SIFT reports keypoints this many pixels right of and below where they are (pixel centres at
+#: integer coordinates): its first octave is the image upsampled 2x by a centre-aligned ``cv2.resize``,
+#: but coordinates found there are halved as if the grids were corner-aligned (a Gaussian blob centred at
+#: (50, 60) is reported at about (50.24, 60.24)). A shift shared by every keypoint of every image acts like
+#: a wrong principal point and tilts the cameras by ``0.25 / f`` radians (0.04 degrees at f = 554 px), so
+#: :func:`detect_features` subtracts it; the SfM module reads its keypoints from there.
+SIFT_OFFSET_PX = 0.25
+
 
 # ----------------------------------------------------------------------------------------------------
 # Errors: degenerate input gets a clear error, never a wrong answer
@@ -517,7 +525,9 @@ def detect_features(images: ImageSet, *, max_features: Annotated[int, Range(0, 5
     Keypoints are extrema of the difference-of-Gaussians scale space, kept where their contrast
     exceeds ``contrast_threshold`` and away from edges; each gets a 128-D histogram of gradient
     orientations around it, rotated to its dominant orientation and scaled to its scale, so it
-    can be matched across viewpoints. Run on the 8-bit grayscale image.
+    can be matched across viewpoints. Run on the 8-bit grayscale image. OpenCV's coordinates are
+    moved by ``-SIFT_OFFSET_PX`` in x and y, to undo its quarter-pixel bias (:data:`SIFT_OFFSET_PX`):
+    a blob centred on pixel (x, y) is reported at (x, y).
 
     Args:
         max_features: keep the strongest this many keypoints per image (0: all).
@@ -536,7 +546,7 @@ def detect_features(images: ImageSet, *, max_features: Annotated[int, Range(0, 5
     for index, image in enumerate(images.images):
         gray8 = np.clip(image.gray() * 255.0 + 0.5, 0, 255).astype(np.uint8)
         found, described = sift.detectAndCompute(gray8, None)
-        points = np.array([k.pt for k in found], dtype=np.float64).reshape(-1, 2)
+        points = np.array([k.pt for k in found], dtype=np.float64).reshape(-1, 2) - SIFT_OFFSET_PX
         described = np.zeros((0, 128), np.float32) if described is None else described.astype(np.float32)
         xy.append(points)
         view.append(np.full(len(points), index))
@@ -840,13 +850,26 @@ def _homographies_4point(x1: np.ndarray, x2: np.ndarray) -> np.ndarray:
     return h.reshape(x1.shape[:-2] + (3, 3))
 
 
-#: How much looser than the degeneracy test the fast homography screen is, and the share of the inliers
-#: above which OpenCV's test runs: a raw 4-point homography of noisy points maps a plane's points less
-#: tightly than OpenCV's refined one. Measured with threshold 1 px, on the inliers, within 2 x 2 px: one
-#: plane or one centre with 0.5 px noise (what OpenCV's test detects) 89-100 %, with 1 px noise (which it
-#: misses) 71-96 %; general scenes 4-16 %, the rendered room 26 %, leuven 47 %.
+#: How much looser than the inlier threshold the fast homography screen is, and the share of the F-consistent
+#: pairs above which the full model selection (GRIC) runs: a raw 4-point homography of noisy points maps a
+#: plane's points less tightly than a refined one. Measured with threshold 1 px, within 2 x 2 px: one plane or
+#: one centre with 0.5 px noise 89-100 %, with 1 px noise 71-96 %; general scenes 4-16 %, the rendered room
+#: 26 %, leuven 47 %. The tolerance is also at least ``SCREEN_SIGMAS`` times the measured noise, so that a
+#: plane with more noise than the threshold (sigma = 2 px at 1 px) still reaches GRIC.
 SCREEN_TOLERANCE = 2.0
 SCREEN_SHARE = 0.6
+SCREEN_SIGMAS = 6.0
+
+#: Torr's GRIC for two views: ``r = 4`` coordinates per correspondence (x1, y1, x2, y2), ``lambda3 = 2``
+#: (the robust cap of a squared normalized residual is ``lambda3 (r - d)``). F: a 3-dimensional variety
+#: (``d = 3``) with ``k = 7`` parameters; H: ``d = 2``, ``k = 8``.
+GRIC_R = 4
+GRIC_LAMBDA3 = 2.0
+GRIC_F = (3, 7)
+GRIC_H = (2, 8)
+
+#: Noise floor (px) of the scale estimate, so that exact synthetic data (residuals ~1e-10) give finite GRIC.
+SIGMA_FLOOR_PX = 0.01
 
 
 @functools.lru_cache(maxsize=64)
@@ -863,9 +886,9 @@ def _best_homography_share(x1: np.ndarray, x2: np.ndarray, tolerance_px: float, 
     A quick RANSAC screen (20 fixed-seed samples of 4, batched; no refinement): if one homography
     explains 90 % of the pairs, 20 samples all miss an all-inlier sample with probability
     (1 - 0.9^4)^20 < 1e-9, so a small share here (with a looser tolerance, ``SCREEN_TOLERANCE``)
-    means the pairs are not degenerate. It stands in front of ``cv2.findHomography`` (which then
-    decides, with its refinement) because that call costs more than the rest of our RANSAC on easy
-    input.
+    means the pairs are not degenerate. It stands in front of the model selection (GRIC, which
+    fits a homography with ``cv2.findHomography``) because that call costs more than the rest of
+    our RANSAC on easy input.
     """
     if len(x1) < 8:
         return 1.0
@@ -881,36 +904,190 @@ def _best_homography_share(x1: np.ndarray, x2: np.ndarray, tolerance_px: float, 
     return float(np.count_nonzero(inside, axis=1).max() / len(x1))
 
 
-def _check_not_degenerate(x1: np.ndarray, x2: np.ndarray, threshold_px: float) -> None:
-    """Raise when the inliers lie on a line, or when one homography explains them (a plane, or no baseline).
+def homography_sampson_distance(H: np.ndarray, x1: np.ndarray, x2: np.ndarray) -> np.ndarray:
+    """First-order geometric error of each pair ``(N, 2)`` under the homography ``H`` ``(3, 3)``, in pixels ``(N,)``.
 
-    A homography ``H`` maps image 1 to image 2 for points on one plane, and for any scene when the
-    cameras share a centre (``H = K2 R K1^-1``); then F is not determined (a whole family of F fits
-    equally well). ``H`` is fitted by ``cv2.findHomography`` (RANSAC, then least squares); when it
-    maps 90 % of the inliers within ``2 threshold_px`` of their match the input is degenerate. A
-    homography conjugate to a rotation has eigenvalues of equal modulus: that says zero baseline.
-    Reference: H&Z section 11.9 (degeneracies); Chum, Werner and Matas, "Two-view geometry
-    estimation unaffected by a dominant plane", CVPR 2005.
+    The two equations ``e = (a - u c, b - v c)`` with ``(a, b, c) = H x1`` and ``x2 = (u, v)`` (the
+    rows of H&Z's ``A_i h``) vanish on the variety ``x2 ~ H x1``; linearized, the smallest move of the
+    pair ``(x1, y1, x2, y2)`` onto it has squared length ``e^T (J J^T)^-1 e``, ``J`` the 2 x 4
+    Jacobian of ``e``. It is the Sampson error of H (H&Z section 4.2.6, eq. 4.12), the same kind of
+    distance as :func:`sampson_distance` for F: both measure the move in the joint image space, with
+    the noise of both images, which is what GRIC compares (the transfer error ``|x2 - H x1|`` counts
+    only image 2 and doubles the variance; the symmetric transfer error counts the noise twice).
+    Identity H and ``x2 = x1 + d``: ``|d| / sqrt(2)`` (half the move in each image).
+    """
+    u, v = x2[:, 0], x2[:, 1]
+    a, b, c = (H @ to_homogeneous(x1).T)
+    e1, e2 = a - u * c, b - v * c
+    p1, q1 = H[0, 0] - u * H[2, 0], H[0, 1] - u * H[2, 1]  # J row 1: (p1, q1, -c, 0)
+    p2, q2 = H[1, 0] - v * H[2, 0], H[1, 1] - v * H[2, 1]  # J row 2: (p2, q2, 0, -c)
+    m11, m22, m12 = p1 * p1 + q1 * q1 + c * c, p2 * p2 + q2 * q2 + c * c, p1 * p2 + q1 * q2
+    with np.errstate(divide="ignore", invalid="ignore"):
+        squared = (m22 * e1 * e1 - 2.0 * m12 * e1 * e2 + m11 * e2 * e2) / (m11 * m22 - m12 * m12)
+    return np.sqrt(np.maximum(squared, 0.0))
+
+
+def _truncated_variance_factor(c: float, dof: int = 1) -> float:
+    """``E[q | q <= c^2] / dof`` for ``q`` chi-square with ``dof`` (1 or 2) degrees of freedom.
+
+    One: ``1 - 2 c phi(c) / (2 Phi(c) - 1)`` (a truncated normal); two: ``(1 - (1 + c^2/2) e^(-c^2/2)) /
+    (1 - e^(-c^2/2))`` (a truncated Rayleigh). 0.973 and 0.949 at ``c = 3``.
+    """
+    import math
+
+    if dof == 2:
+        tail = math.exp(-0.5 * c * c)
+        return (1.0 - (1.0 + 0.5 * c * c) * tail) / (1.0 - tail)
+    inside = math.erf(c / math.sqrt(2.0))
+    return 1.0 - 2.0 * c * math.exp(-0.5 * c * c) / math.sqrt(2.0 * math.pi) / inside
+
+
+def noise_sigma(residuals: np.ndarray, *, start_px: float = 1.0, cut: float = 3.0, iterations: int = 30) -> float:
+    """Robust noise scale (px) from residuals ``(N,)`` that are ``sigma |N(0, 1)|`` for inliers, anything for outliers.
+
+    Start from ``max(1.4826 median, start_px)`` (at or above sigma with up to ~50 % outliers), then
+    iterate the truncated estimate: keep ``|d| <= cut sigma`` and set ``sigma^2 = mean(d^2) / E[z^2 | |z|
+    <= cut]`` (the correction for the truncation, 0.973 at 3 sigma) until it settles; it descends to the
+    inliers' scale whatever the RANSAC threshold was (a 1 px threshold on 2 px noise keeps only a
+    truncated core, whose spread alone would say ~0.5 px). Floored at ``SIGMA_FLOOR_PX``. Reference:
+    Huber, Robust Statistics (1981), the MAD; P. Torr and A. Zisserman, "MLESAC", CVIU 78(1), 2000.
+    """
+    d = np.abs(residuals[np.isfinite(residuals)])
+    if len(d) == 0:
+        return SIGMA_FLOOR_PX
+    factor = _truncated_variance_factor(cut)
+    sigma = max(1.4826 * float(np.median(d)), float(start_px), SIGMA_FLOOR_PX)
+    for _ in range(iterations):
+        kept = d[d <= cut * sigma]
+        if len(kept) < SAMPLE_SIZE:
+            break
+        new = max(float(np.sqrt(np.mean(kept * kept) / factor)), SIGMA_FLOOR_PX)
+        if abs(new - sigma) <= 1e-3 * sigma:
+            return new
+        sigma = new
+    return sigma
+
+
+def gric(residuals: np.ndarray, sigma: float, d: int, k: int, r: int = GRIC_R) -> float:
+    """Torr's geometric robust information criterion of a model with residuals ``(n,)`` (px): lower is better.
+
+    ``GRIC = sum rho(e_i^2 / sigma^2) + lambda1 d n + lambda2 k``, ``rho(x) = min(x, lambda3 (r - d))``,
+    ``lambda1 = ln r``, ``lambda2 = ln(r n)``, ``lambda3 = 2``; ``d`` the dimension of the model's
+    variety, ``k`` its parameters, ``r`` the dimension of the data (4 for two views). A model of lower
+    dimension pays less per point (``lambda1 d``) but fits worse: a homography (d = 2) beats F (d = 3)
+    when its residuals are hardly larger. Reference: P. Torr, "An assessment of information criteria
+    for motion model selection", CVPR 1997; "Geometric motion segmentation and model selection",
+    Phil. Trans. R. Soc. A 356, 1998.
+    """
+    n = len(residuals)
+    capped = np.minimum(np.nan_to_num(residuals / sigma, nan=np.inf) ** 2, GRIC_LAMBDA3 * (r - d))
+    return float(capped.sum() + np.log(r) * d * n + np.log(r * n) * k)
+
+
+def _robust_homography(x1: np.ndarray, x2: np.ndarray, tolerance_px: float) -> np.ndarray | None:
+    """``cv2.findHomography`` by RANSAC (transfer error within ``tolerance_px``), then least squares on its
+    inliers, twice.
+
+    OpenCV's own refinement after RANSAC stops early: on a noisy plane its H leaves Sampson errors ~25 %
+    larger than the least-squares H of the same inliers, enough to tip the model selection.
     """
     import cv2
 
-    for name, x in (("x1", x1), ("x2", x2)):
+    # GRIC picks H only when it explains ~3/4 of the pairs or more: 30 samples of 4 all miss such an H with
+    # probability (1 - 0.75^4)^30 < 1e-4 (and more samples cost more than the rest of RANSAC on easy input)
+    H, mask = cv2.findHomography(x1, x2, cv2.RANSAC, tolerance_px, maxIters=30, confidence=0.999)
+    for _ in range(2):
+        if H is None or mask is None or int(mask.sum()) < 4 or mask.mean() < SCREEN_SHARE:
+            return H  # an H of under 60 % of the pairs loses the selection, refined or not (it needs ~3/4)
+        refit, _ = cv2.findHomography(x1[mask.ravel() > 0], x2[mask.ravel() > 0], 0)
+        if refit is None:
+            return H
+        H = refit
+        with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
+            mapped = to_homogeneous(x1) @ H.T
+            transfer = np.hypot(mapped[:, 0] / mapped[:, 2] - x2[:, 0], mapped[:, 1] / mapped[:, 2] - x2[:, 1])
+        mask = (transfer <= tolerance_px).astype(np.uint8)
+    return H
+
+
+#: Largest mean increase of the squared normalized Sampson error (``e^2 / sigma^2`` per pair) when a
+#: homography's eigenvalues are forced to modulus 1, for it to count as a rotation's: the pairs move by less
+#: than sigma / 2 RMS. Measured (300 pairs, 0.5 and 2 px noise): one centre 0.00-0.16, one plane 0.40-2.4
+#: (planes whose own homography is within 1 % of a rotation's included).
+ROTATION_EXTRA_COST = 0.25
+
+
+def _rotation_explains(H: np.ndarray, x1: np.ndarray, x2: np.ndarray, sigma: float) -> bool:
+    """Whether the rotation-conjugate homography nearest ``H`` (its eigenvalues scaled to modulus 1,
+    ``V diag(w / |w|) V^-1``) still explains the pairs ``(N, 2)`` within the noise ``sigma``.
+
+    The eigenvalue test alone (:func:`_conjugate_to_rotation`, 1 %) cannot tell some planes from a
+    turn of the camera: a plane's homography ``K2 (R - t n^T / d) K1^-1`` may be within 1 % of a
+    rotation's. Whether 1 % matters depends on the noise: here it is measured against the residuals.
+    """
+    with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
+        w, V = np.linalg.eig(H / np.cbrt(np.linalg.det(H)))
+        try:
+            rotation = np.real(V @ np.diag(w / np.abs(w)) @ np.linalg.inv(V))
+        except np.linalg.LinAlgError:
+            return False
+        cap = GRIC_LAMBDA3 * (GRIC_R - GRIC_H[0])
+        cost = np.minimum((homography_sampson_distance(rotation, x1, x2) / sigma) ** 2, cap)
+        base = np.minimum((homography_sampson_distance(H, x1, x2) / sigma) ** 2, cap)
+    extra = float(np.mean(np.nan_to_num(cost, nan=cap) - np.nan_to_num(base, nan=cap)))
+    return extra <= ROTATION_EXTRA_COST
+
+
+def _check_not_degenerate(F: np.ndarray, x1: np.ndarray, x2: np.ndarray, inliers: np.ndarray,
+                          threshold_px: float) -> None:
+    """Raise when the inliers lie on a line, or when a homography explains the matches as well as F (one plane,
+    or no baseline).
+
+    A homography ``H`` maps image 1 to image 2 for points on one plane, and for any scene when the
+    cameras share a centre (``H = K2 R K1^-1``); then F is not determined (a whole family of F fits
+    equally well). Which model the matches support is decided by Torr's GRIC (:func:`gric`), not by
+    a share under a threshold (at 1 px noise the transfer error of a plane's points passes 2 px for
+    a third of them). The noise ``sigma`` is measured from F's Sampson distances of all matches
+    (:func:`noise_sigma`, robust to outliers and to the RANSAC threshold); the pairs F explains within
+    3 sigma (at most 300, spread over the list) are the data; ``H`` is fitted to them by
+    ``cv2.findHomography`` (RANSAC at 3.5 sigma of transfer error, then least squares on its inliers,
+    :func:`_robust_homography`); the residuals are the Sampson errors of F (:func:`sampson_distance`) and of H
+    (:func:`homography_sampson_distance`). Degenerate when ``GRIC(H) <= GRIC(F)``. A homography
+    conjugate to a rotation has eigenvalues of equal modulus: that says zero baseline. A fast
+    4-point screen (:func:`_best_homography_share`) skips the selection when no homography comes
+    near most pairs. Reference: H&Z section 11.9 (degeneracies); Torr (CVPR 1997; Phil. Trans. 1998);
+    Chum, Werner and Matas, "Two-view geometry estimation unaffected by a dominant plane", CVPR 2005.
+    """
+    import cv2
+
+    for name, x in (("x1", x1[inliers]), ("x2", x2[inliers])):
         _check_collinear(x, name, threshold_px)
-    chosen = np.unique(np.linspace(0, len(x1) - 1, min(len(x1), 200)).round().astype(int))
-    if _best_homography_share(x1[chosen], x2[chosen], SCREEN_TOLERANCE * 2.0 * threshold_px) < SCREEN_SHARE:
-        return  # no homography holds most inliers even twice looser: OpenCV's check is not needed
-    # the fraction is a property of the set: 200 inliers spread over the list measure it within a few %,
-    # and 20 samples of 4 miss a homography that explains 90 % (if there is one) with probability 1e-9
-    chosen = np.unique(np.linspace(0, len(x1) - 1, min(len(x1), 200)).round().astype(int))
-    H, mask = cv2.findHomography(x1[chosen], x2[chosen], cv2.RANSAC, 2.0 * threshold_px, maxIters=20,
-                                 confidence=0.999)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        distances = sampson_distance(F, x1, x2)
+    sigma = noise_sigma(distances, start_px=threshold_px)
+    consistent = np.flatnonzero(distances <= max(3.0 * sigma, threshold_px))
+    if len(consistent) < SAMPLE_SIZE:
+        consistent = np.flatnonzero(inliers)
+    chosen = consistent[np.unique(np.linspace(0, len(consistent) - 1, min(len(consistent), 300)).round().astype(int))]
+    a, b = x1[chosen], x2[chosen]
+    tolerance = max(SCREEN_TOLERANCE * 2.0 * threshold_px, SCREEN_SIGMAS * sigma)
+    if _best_homography_share(a, b, tolerance) < SCREEN_SHARE:
+        return  # no homography comes near most pairs even far looser: it cannot win the model selection
+    H = _robust_homography(a, b, 3.5 * sigma)
     if H is None:
         return
-    explained = float(np.mean(mask.ravel() > 0))
-    if explained < 0.9:
+    residuals_F, residuals_H = sampson_distance(F, a, b), homography_sampson_distance(H, a, b)
+    close = residuals_H <= 3.0 * sigma
+    if close.mean() >= 0.5:  # most pairs follow H: F's spare freedom has absorbed part of the noise, take H's too
+        spread = np.mean(residuals_H[close] ** 2) / (2.0 * _truncated_variance_factor(3.0, 2))  # 2 dof, cut at 3
+        sigma = max(sigma, float(np.sqrt(spread)))
+    gric_F = gric(residuals_F, sigma, *GRIC_F)
+    gric_H = gric(residuals_H, sigma, *GRIC_H)
+    if gric_H > gric_F:
         return
-    share = f"one homography maps {explained:.0%} of the {len(chosen)} inliers (tested) within {2 * threshold_px:g} px"
-    if _conjugate_to_rotation(H):
+    share = (f"one homography explains the {len(chosen)} matches tested as well as F (Torr's GRIC: H {gric_H:.0f} "
+             f"<= F {gric_F:.0f}, noise {sigma:.2f} px)")
+    if _conjugate_to_rotation(H) and _rotation_explains(H, a, b, sigma):
         raise ZeroBaseline("x1", f"{share}, and it is (close to) a rotation: the two cameras share their centre "
                                  "(zero baseline), so there is no parallax and F (and t) are not determined; move the "
                                  "camera between the photos")
@@ -998,7 +1175,7 @@ def estimate_fundamental_ransac(x1: np.ndarray, x2: np.ndarray, *,
     if inliers.sum() < SAMPLE_SIZE:
         raise TooFewMatches("x1", f"only {int(inliers.sum())} inliers within {threshold_px:g} px; raise threshold_px")
     if check_degenerate:
-        _check_not_degenerate(x1[inliers], x2[inliers], threshold_px)
+        _check_not_degenerate(F, x1, x2, inliers, threshold_px)
     sampson = sampson_distance(F, x1[inliers], x2[inliers])
     trace = Curve(np.array(trace_x, dtype=np.float64), np.array([trace_best, trace_needed], dtype=np.float64),
                   kind="line", title=f"RANSAC: {best_count} inliers after {drawn} samples", xlabel="samples drawn",

@@ -69,13 +69,9 @@ from lab.modules import epipolar
 #: Fewest 2D-3D correspondences the linear PnP (DLT) can use.
 PNP_MINIMUM = 6
 
-#: OpenCV's SIFT reports keypoints this many pixels right of and below where they are: its first
-#: octave is the image upsampled 2x by a centre-aligned ``cv2.resize``, but coordinates found there
-#: are halved as if the grids were corner-aligned (a blob centred at (50, 60) is reported at about
-#: (50.24, 60.24)). A shift shared by every keypoint of every image acts like a wrong principal
-#: point and tilts all cameras by ``0.25 / f`` radians (0.04 degrees at f = 554 px), so
-#: :func:`detect_all_features` subtracts it.
-SIFT_OFFSET_PX = 0.25
+#: OpenCV's quarter-pixel SIFT bias, corrected at the source (:data:`lab.modules.epipolar.SIFT_OFFSET_PX`,
+#: subtracted by ``epipolar.detect_features``); named here for reference only, not applied again.
+SIFT_OFFSET_PX = epipolar.SIFT_OFFSET_PX
 
 
 class RegistrationFailed(StepFailed):
@@ -222,8 +218,8 @@ def detect_all_features(images: ImageSet, *, max_features: Annotated[int, Range(
     """SIFT keypoints and descriptors in every image (the epipolar module's ``detect_features``).
 
     The two-view step runs on the images two at a time (an odd last image is paired with itself and
-    its copy dropped); each keypoint gets the colour of its pixel. Keypoints are moved by
-    ``-SIFT_OFFSET_PX`` in x and y to undo OpenCV's half-pixel-grid bias (see :data:`SIFT_OFFSET_PX`).
+    its copy dropped); each keypoint gets the colour of its pixel. OpenCV's quarter-pixel bias is
+    already removed there (:data:`lab.modules.epipolar.SIFT_OFFSET_PX`).
 
     Args:
         max_features: keep the strongest this many keypoints per image (0: all).
@@ -244,7 +240,7 @@ def detect_all_features(images: ImageSet, *, max_features: Annotated[int, Range(
             if local == 1 and second == first:
                 continue
             keep = found.keypoints.view == local
-            points = found.keypoints.xy[keep] - SIFT_OFFSET_PX
+            points = found.keypoints.xy[keep]
             xy.append(points)
             view.append(np.full(len(points), index, dtype=np.int64))
             descriptors.append(found.descriptors[keep])

@@ -19,7 +19,7 @@ from lab.data.two_view import correspondences
 from lab.geometry.rotations import rotation_angle_deg
 from lab.modules import get_pipeline
 from lab.modules.epipolar import (PIPELINE, CANDIDATE_NAMES, CollinearPoints, CoplanarPoints, DegenerateInput,
-                                  MissingIntrinsics,
+                                  MissingIntrinsics, SIFT_OFFSET_PX,
                                   TooFewMatches, ZeroBaseline, clip_lines, compute_epipolar_lines,
                                   decompose_essential, detect_features, eight_point, enforce_rank2, epipolar_distances,
                                   epipolar_lines, epipoles, estimate_essential, estimate_fundamental_8point,
@@ -283,6 +283,79 @@ def test_zero_baseline(noise_px):
         estimate_fundamental_ransac(loaded.state["x1"], loaded.state["x2"], rng=np.random.default_rng(0))
 
 
+@pytest.mark.parametrize("noise_px", [0.5, 1.0, 2.0])
+@pytest.mark.parametrize("threshold_px", [1.0, 2.0])
+def test_degenerate_input_is_found_at_realistic_noise(noise_px, threshold_px):
+    """One plane or one centre, with noise up to twice the threshold and 30 % outliers: the right error (GRIC)."""
+    for options, error, words in (({"structure": "plane"}, CoplanarPoints, "one plane"),
+                                  ({"baseline": 0.0}, ZeroBaseline, "share their centre")):
+        for seed in range(3):
+            loaded = correspondences(noise_px=noise_px, seed=seed, **options)
+            with pytest.raises(error, match=words):
+                estimate_fundamental_ransac(loaded.state["x1"], loaded.state["x2"], threshold_px=threshold_px,
+                                            rng=np.random.default_rng(seed))
+
+
+@pytest.mark.parametrize("noise_px", [0.5, 1.0, 2.0])
+@pytest.mark.parametrize("threshold_px", [1.0, 2.0])
+def test_general_scenes_are_not_degenerate_at_any_noise(noise_px, threshold_px):
+    """Scenes with depth, 30 % outliers, the same noise: never refused (a shallow scene and few points included)."""
+    for options in ({}, {"depth_range": 1.0}, {"num_points": 60}, {"baseline": 0.3}):
+        for seed in range(3):
+            loaded = correspondences(noise_px=noise_px, seed=seed, **options)
+            result = estimate_fundamental_ransac(loaded.state["x1"], loaded.state["x2"], threshold_px=threshold_px,
+                                                 rng=np.random.default_rng(seed))
+            assert result.num_inliers >= 8, (options, seed)
+
+
+def test_gric_known_answer():
+    from lab.modules.epipolar import gric
+
+    n = 50
+    exact = np.zeros(n)
+    assert gric(exact, 1.0, 3, 7) == pytest.approx(np.log(4) * 3 * n + np.log(4 * n) * 7)
+    assert gric(exact, 1.0, 2, 8) == pytest.approx(np.log(4) * 2 * n + np.log(4 * n) * 8)
+    # residuals count as (e / sigma)^2, capped at lambda3 (r - d) = 2 (F) or 4 (H); NaN counts as the cap
+    residuals = np.array([0.5, 1.0, 10.0, np.nan])
+    base = gric(np.zeros(4), 0.5, 3, 7)
+    assert gric(residuals, 0.5, 3, 7) - base == pytest.approx(1.0 + 2.0 + 2.0 + 2.0)
+    assert gric(residuals, 0.5, 2, 8) - gric(np.zeros(4), 0.5, 2, 8) == pytest.approx(1.0 + 4.0 + 4.0 + 4.0)
+    # a plane: H's residuals are twice F's in squares (2 vs 1 degree of freedom), yet H wins by ln 4 per point
+    rng = np.random.default_rng(0)
+    noise = rng.normal(0, 0.7, (2000, 4))
+    assert gric(np.linalg.norm(noise[:, :2], axis=1), 0.7, 2, 8) < gric(np.abs(noise[:, 2]), 0.7, 3, 7)
+
+
+def test_homography_sampson_distance_known_answer():
+    from lab.modules.epipolar import homography_sampson_distance
+
+    x1 = np.array([[10.0, 20.0], [300.0, 40.0], [-5.0, 7.0]])
+    move = np.array([[3.0, 4.0], [0.0, 1.0], [-2.0, 0.0]])
+    # identity: the smallest move of the pair is half the displacement in each image, |d| / sqrt(2)
+    np.testing.assert_allclose(homography_sampson_distance(np.eye(3), x1, x1 + move),
+                               np.linalg.norm(move, axis=1) / np.sqrt(2), rtol=1e-12)
+    H = np.array([[1.1, 0.05, 12.0], [-0.03, 0.95, -7.0], [1e-4, -2e-4, 1.0]])
+    exact = cv2.perspectiveTransform(x1[None], H)[0]
+    np.testing.assert_allclose(homography_sampson_distance(H, x1, exact), 0.0, atol=1e-9)
+    # invariant to the scale of H; a small move in image 2 alone: close to the geometric (gold standard) error
+    small = np.array([[0.03, -0.02]] * 3)
+    d = homography_sampson_distance(H, x1, exact + small)
+    np.testing.assert_allclose(homography_sampson_distance(-3.0 * H, x1, exact + small), d, rtol=1e-12)
+    assert np.all(d < np.linalg.norm(small, axis=1)) and np.all(d > 0.5 * np.linalg.norm(small, axis=1))
+
+
+def test_noise_sigma_is_robust_to_outliers_and_to_the_threshold():
+    from lab.modules.epipolar import SIGMA_FLOOR_PX, noise_sigma
+
+    rng = np.random.default_rng(3)
+    for sigma in (0.3, 1.0, 2.0):
+        inliers = np.abs(rng.normal(0, sigma, 2000))
+        outliers = rng.uniform(8 * sigma, 100 * sigma, 900)  # 31 % outliers
+        for start in (0.5, 1.0, 2.0):  # the RANSAC threshold it starts from does not matter
+            assert noise_sigma(np.concatenate([inliers, outliers]), start_px=start) == pytest.approx(sigma, rel=0.06)
+    assert noise_sigma(np.zeros(100)) == SIGMA_FLOOR_PX
+
+
 def test_zero_baseline_at_the_8point_step():
     exact = correspondences(baseline=0.0, noise_px=0.0, outlier_rate=0.0, seed=5)
     with pytest.raises(ZeroBaseline, match="share their centre"):
@@ -364,9 +437,31 @@ def test_detect_features_is_opencvs_sift(leuven):
     gray = np.clip(leuven.state["images"][0].gray() * 255 + 0.5, 0, 255).astype(np.uint8)
     found, descriptors = cv2.SIFT_create(nfeatures=4000).detectAndCompute(gray, None)
     first = keypoints.view == 0
-    np.testing.assert_allclose(keypoints.xy[first], [k.pt for k in found])
+    np.testing.assert_allclose(keypoints.xy[first], np.array([k.pt for k in found]) - SIFT_OFFSET_PX)
     np.testing.assert_array_equal(leuven.state["descriptors"][first], descriptors)
     assert leuven.metrics["detect_features"]["keypoints_image1"] == len(found)
+
+
+def test_detect_features_finds_a_blob_at_its_true_pixel():
+    """Gaussian blobs centred at known pixels (integer and not) are found there within 0.1 px; OpenCV alone
+    reports them about SIFT_OFFSET_PX = 0.25 px right of and below."""
+    from lab.core import Image, ImageSet
+
+    yy, xx = np.mgrid[0:120, 0:160].astype(np.float64)
+    centres = [(40.0, 50.0), (110.3, 70.6), (75.5, 30.25)]
+    pixels = sum(np.exp(-((xx - x) ** 2 + (yy - y) ** 2) / (2 * 3.0**2)) for x, y in centres)
+    image = Image(pixels.astype(np.float32))
+    found = detect_features(ImageSet((image, image)), contrast_threshold=0.01)
+    raw = np.array([k.pt for k in cv2.SIFT_create(contrastThreshold=0.01).detect(
+        np.clip(image.gray() * 255.0 + 0.5, 0, 255).astype(np.uint8), None)])
+    for view in (0, 1):
+        xy = found.keypoints.xy[found.keypoints.view == view]
+        for centre in centres:
+            assert np.linalg.norm(xy - centre, axis=1).min() < 0.1, (view, centre)
+    for centre in centres:  # the bias being removed: OpenCV's own point is ~(0.25, 0.25) off
+        offset = raw[np.argmin(np.linalg.norm(raw - centre, axis=1))] - centre
+        np.testing.assert_allclose(offset, [SIFT_OFFSET_PX, SIFT_OFFSET_PX], atol=0.1)
+    assert SIFT_OFFSET_PX == 0.25
 
 
 def test_detect_features_controls_change_the_count(leuven):
