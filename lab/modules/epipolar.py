@@ -60,7 +60,7 @@ import numpy as np
 from lab.core import (Cameras, Curve, ImageSet, InvalidValue, Pipeline, PointCloud, Points2D, Range, Segments2D,
                       StepFailed, metric)
 from lab.data.two_view import correspondences, photos, rendered
-from lab.geometry.camera import as_intrinsics
+from lab.geometry.camera import as_intrinsics, pixels_to_normalized
 from lab.geometry.homogeneous import hartley_normalization, to_homogeneous
 from lab.geometry.robust import random_samples, ransac_iterations
 from lab.geometry.rotations import rotation_angle_deg
@@ -342,12 +342,6 @@ def essential_candidates(E: np.ndarray) -> np.ndarray:
     W = np.array([[0.0, 1.0, 0.0], [-1.0, 0.0, 0.0], [0.0, 0.0, 1.0]])
     R1, R2, t = U @ W @ Vt, U @ W.T @ Vt, U[:, 2]
     return np.stack([np.column_stack([R, s * t]) for s, R in ((1, R1), (1, R2), (-1, R1), (-1, R2))])
-
-
-def _normalized_points(x: np.ndarray, K: np.ndarray) -> np.ndarray:
-    """``K^-1 x`` de-homogenized, ``(N, 2)`` (pixels -> normalized image coordinates)."""
-    h = to_homogeneous(x) @ np.linalg.inv(K).T
-    return h[:, :2] / h[:, 2:]
 
 
 def cheirality_counts(candidates: np.ndarray, n1: np.ndarray, n2: np.ndarray) -> np.ndarray:
@@ -1386,7 +1380,7 @@ def recover_pose(candidates: np.ndarray, x1: np.ndarray, x2: np.ndarray, K1: np.
     if not mask.any():
         raise TooFewMatches("inliers", "no inliers to test the four poses with")
     K1, K2 = as_intrinsics(K1), as_intrinsics(K2)
-    counts = cheirality_counts(candidates, _normalized_points(x1[mask], K1), _normalized_points(x2[mask], K2))
+    counts = cheirality_counts(candidates, pixels_to_normalized(x1[mask], K1), pixels_to_normalized(x2[mask], K2))
     best = int(np.argmax(counts))
     if counts[best] == 0:
         raise DegenerateInput("candidates", "no candidate pose puts any point in front of both cameras: E does not "

@@ -61,6 +61,7 @@ from lab.core import (Cameras, Curve, ImageSet, InvalidValue, Pipeline, PointClo
                       StepFailed, metric)
 from lab.data.multiview import check_intrinsics, match_files, photos, rendered
 from lab.geometry.bundle_adjustment import bundle_adjust_progress
+from lab.geometry.camera import pixels_to_normalized
 from lab.geometry.pnp import pnp_ransac, refine_pnp, reprojection_errors
 from lab.geometry.rotations import nearest_rotation, rotation_angle_deg
 from lab.geometry.triangulation import point_depths, projection_matrix, refine_points, triangulate_dlt
@@ -570,8 +571,8 @@ def initialize_pose(images: ImageSet, keypoints: Points2D, inlier_matches: np.nd
     E = epipolar.estimate_essential(fit.F, ImageSet((images[a], images[b])), K[a], K[b])
     candidates = epipolar.decompose_essential(E)
     pose = epipolar.recover_pose(candidates, x1, x2, K[a], K[b], fit.inliers)
-    counts = epipolar.cheirality_counts(candidates, epipolar._normalized_points(x1[fit.inliers], K[a]),
-                                        epipolar._normalized_points(x2[fit.inliers], K[b]))
+    counts = epipolar.cheirality_counts(candidates, pixels_to_normalized(x1[fit.inliers], K[a]),
+                                        pixels_to_normalized(x2[fit.inliers], K[b]))
     refined = epipolar.refine_pose(pose, x1, x2, K[a], K[b], fit.inliers)
     return InitialPose(_poses_matrix(refined.R, refined.t), refined.warnings, int(fit.inliers.sum()),
                        int(counts.max()), refined.sampson_rms_px, refined.median_parallax_deg)

@@ -36,6 +36,7 @@ import numpy as np
 
 from lab.core.errors import InvalidValue, LabError, MissingInput
 from lab.core.values import Image, ImageSet, Points2D, Segments2D
+from lab.geometry.camera import pixels_to_normalized
 from lab.geometry.homogeneous import to_homogeneous
 from lab.geometry.triangulation import point_depths, projection_matrix, triangulate_dlt
 from lab.modules.epipolar import (cheirality_counts, clip_lines, epipolar_lines, epipoles, essential_candidates,
@@ -968,9 +969,7 @@ def analyse_candidates(candidates: np.ndarray, K1: np.ndarray, K2: np.ndarray, x
     x2 = np.asarray(x2, dtype=np.float64).reshape(-1, 2)
     if len(x1) == 0 or len(x1) != len(x2):
         raise MissingInput("x1", f"no matched pairs to test the candidates with ({len(x1)} and {len(x2)} points)")
-    h1 = to_homogeneous(x1) @ np.linalg.inv(K1).T
-    h2 = to_homogeneous(x2) @ np.linalg.inv(K2).T
-    counts = cheirality_counts(candidates, h1[:, :2] / h1[:, 2:], h2[:, :2] / h2[:, 2:])
+    counts = cheirality_counts(candidates, pixels_to_normalized(x1, K1), pixels_to_normalized(x2, K2))
     chosen = int(np.argmax(counts))
     step = max(1, len(x1) // MAX_CANDIDATE_POINTS)
     points, in_front = candidate_points(candidates, K1, K2, x1[::step], x2[::step])
