@@ -404,9 +404,19 @@ def same_as_reference_with(got: np.ndarray, expected: np.ndarray, *, alternative
     return None
 
 
+def same_as_mistake(got: np.ndarray, expected: np.ndarray, *, outcome: Outcome | None = None,
+                    mistake: str = "") -> str | None:
+    """The result equals what a known wrong implementation of the lesson's ``mistakes.py`` computes on the
+    same inputs (the grader runs it and supplies ``outcome``)."""
+    if outcome is not None and outcome.passed:
+        return f"your result is what the known mistake {mistake!r} computes"
+    return None
+
+
 #: Detectors by the name ``hints = [{ when = ... }]`` uses.
 DETECTORS: dict[str, Callable[..., str | None]] = {f.__name__: f for f in (
-    transposed, inverse, negated, scaled, rank_above, entry_zero, entry_not, permuted, same_as_reference_with)}
+    transposed, inverse, negated, scaled, rank_above, entry_zero, entry_not, permuted, same_as_reference_with,
+    same_as_mistake)}
 
 
 def detect(when: str, got: Any, expected: Any, options: dict[str, Any]) -> str | None:

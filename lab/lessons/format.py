@@ -49,6 +49,14 @@
         rtol = 1e-6                   # ... and its options
         hints = [{ when = "transposed" }, { when = "same_as_reference_with", params = { normalize = false }, say = "..." }]
 
+``mistakes.py`` (optional)
+    Recognisable wrong implementations, written by the lesson's author so that a check can say
+    what went wrong when the mistake leaves no trace in the output alone ("you took the argmax").
+    Each is a function with the parameters of a task's step; a hint
+    ``{ when = "same_as_mistake", mistake = "winner_take_all_argmax", say = "..." }`` runs it on
+    the check's inputs and controls (in the grader's process, like the reference: it is trusted
+    code) and fires when the student's result matches it.
+
 Everything is checked when a lesson is loaded (:func:`load_lesson`): names of steps, controls,
 datasets, values and comparisons, the signatures against the module's own steps, the points, and
 that ``starter.py`` defines every task's function with the same parameters and a body that
@@ -196,10 +204,20 @@ class Lesson:
     datasets: dict[str, CheckDataset]
     limits: Limits
     visibility: str = "visible"
+    mistakes_source: str = ""
 
     @cached_property
     def pipeline(self) -> Pipeline:
         return resolve_pipeline(self.module)
+
+    @cached_property
+    def mistakes(self) -> dict[str, Any]:
+        """The functions of ``mistakes.py`` by name (executed once, on first use)."""
+        if not self.mistakes_source:
+            return {}
+        namespace: dict[str, Any] = {"__name__": f"lab_lesson_mistakes_{self.id.replace('-', '_')}"}
+        exec(compile(self.mistakes_source, str(self.path / "mistakes.py"), "exec"), namespace)  # noqa: S102 - the author's file
+        return {name: value for name, value in namespace.items() if inspect.isfunction(value)}
 
     @property
     def points(self) -> float:
@@ -344,8 +362,10 @@ def load_lesson(folder: Path | str, *, validate: bool = True) -> Lesson:
     names = [t.name for t in tasks]
     if len(set(names)) != len(names) or len({t.step for t in tasks}) != len(tasks):
         raise LessonFormatError(f"{where}: tasks", f"task names and steps must be unique, got {names}")
+    mistakes = folder / "mistakes.py"
     lesson = Lesson(id=lesson_id, path=folder, title=str(title), module=module, text=files["lesson.md"],
-                    starter=files["starter.py"], tasks=tasks, datasets=datasets, limits=limits, visibility=visibility)
+                    starter=files["starter.py"], tasks=tasks, datasets=datasets, limits=limits, visibility=visibility,
+                    mistakes_source=mistakes.read_text(encoding="utf-8") if mistakes.is_file() else "")
     if validate:
         validate_lesson(lesson)
     return lesson
@@ -523,7 +543,8 @@ def validate_lesson(lesson: Lesson) -> None:
         for step, controls in data.params.items():
             step_spec = _known(lambda: pipeline.step(step), f"{where}: datasets.{name}.params.{step}")
             _controls(step_spec, controls, f"{where}: datasets.{name}.params.{step}")
-    starter = _starter_functions(lesson)
+    starter = _functions(lesson.starter, f"{lesson.id}/starter.py")
+    mistakes = _functions(lesson.mistakes_source, f"{lesson.id}/mistakes.py")
     for ti, task in enumerate(lesson.tasks):
         at = f"{where}: tasks[{ti}]"
         spec = _known(lambda: pipeline.step(task.step), f"{at}.step")
@@ -560,6 +581,9 @@ def validate_lesson(lesson: Lesson) -> None:
                                                                       f"detectors are {sorted(DETECTORS)}")
                 if hint.when == "same_as_reference_with":
                     _controls(spec, hint.options.get("params", {}), f"{cat}.hints[{hi}].params")
+                if hint.when == "same_as_mistake":
+                    _mistake(mistakes, hint.options.get("mistake"), expected, f"{cat}.hints[{hi}].mistake",
+                             f"{lesson.id}/mistakes.py")
             index = step_names.index(task.step)
             if check.stage == "output":
                 root = (check.value or (spec.writes[0] if spec.writes else "")).split(".")[0]
@@ -596,12 +620,26 @@ def _controls(spec: StepSpec, params: dict[str, Any], where: str) -> None:
         raise LessonFormatError(f"{where}.{exc.field}", exc.reason) from None
 
 
-def _starter_functions(lesson: Lesson) -> dict[str, ast.FunctionDef]:
+def _functions(source: str, where: str) -> dict[str, ast.FunctionDef]:
+    """The top-level functions of a lesson's Python file (``starter.py``, ``mistakes.py``), by name."""
     try:
-        tree = ast.parse(lesson.starter, filename="starter.py")
+        tree = ast.parse(source, filename=where)
     except SyntaxError as exc:
-        raise LessonFormatError(f"{lesson.id}/starter.py", f"line {exc.lineno}: {exc.msg}") from None
+        raise LessonFormatError(where, f"line {exc.lineno}: {exc.msg}") from None
     return {node.name: node for node in tree.body if isinstance(node, ast.FunctionDef)}
+
+
+def _mistake(mistakes: dict[str, ast.FunctionDef], name: Any, expected: Parameters, where: str, file: str) -> None:
+    """A ``same_as_mistake`` hint names a function of ``mistakes.py`` with the step's parameters."""
+    if not isinstance(name, str) or not name:
+        raise LessonFormatError(where, "a same_as_mistake hint names a function of mistakes.py (mistake = \"...\")")
+    if name not in mistakes:
+        raise LessonFormatError(where, f"{file} defines no function {name!r}"
+                                       + (f"; it defines {sorted(mistakes)}" if mistakes else " (is the file missing?)"))
+    got = parameters_of_def(mistakes[name])
+    if got.positional != expected.positional or got.keyword != expected.keyword:
+        raise LessonFormatError(where, f"{name}{got.text()} in {file} differs from the step's parameters "
+                                       f"{expected.text()}")
 
 
 def _raises_not_implemented(node: ast.FunctionDef) -> bool:

@@ -443,8 +443,11 @@ class Grader:
         return got, expected
 
     # --- running steps ----------------------------------------------------------------------------------
-    def _step_run(self, task: Task, dataset: str, params: dict[str, Any], *, student: bool) -> StepRun:
-        key = (task.step, dataset, _freeze(params))
+    def _step_run(self, task: Task, dataset: str, params: dict[str, Any], *, student: bool,
+                  mistake: str | None = None) -> StepRun:
+        """Run the task's step on ``dataset``: the student's code, the reference, or (``mistake``) a function
+        of the lesson's ``mistakes.py``."""
+        key = (task.step, dataset, _freeze(params), mistake)
         cache = self.student_runs if student else self.reference_runs
         if key in cache:
             return cache[key]
@@ -453,7 +456,7 @@ class Grader:
         run = StepRun(step=task.step, session=session)
         proxy = _Proxy(self, task, spec) if student else None
         try:
-            session.run(task.step, params, override=proxy)
+            session.run(task.step, params, override=proxy or (self.lesson.mistakes[mistake] if mistake else None))
             run.outputs = {name: session.state[name] for name in spec.writes if name in session.state}
         except StepFailed as exc:
             cause = exc.__cause__
@@ -507,9 +510,9 @@ class Grader:
             return found
         for rule in check.hints:
             options = dict(rule.options)
-            if rule.when == "same_as_reference_with":
+            if rule.when in ("same_as_reference_with", "same_as_mistake"):
                 alternative = self._step_run(task, check.dataset, {**params, **options.get("params", {})},
-                                             student=False)
+                                             student=False, mistake=options.get("mistake"))
                 first = self.pipeline.step(task.step).writes[0]
                 if alternative.error or first not in alternative.outputs:
                     continue
@@ -520,7 +523,8 @@ class Grader:
                                       **(check.options if check.stage == "output" else {}))
                 except (TypeError, ValueError):
                     continue
-                options = {"outcome": outcome, "params": options.get("params", {})}
+                options = {"outcome": outcome, **({"mistake": options["mistake"]} if rule.when == "same_as_mistake"
+                                                  else {"params": options.get("params", {})})}
             message = checks_module.detect(rule.when, got_array, expected_array, options)
             if message:
                 found.append(rule.say or message)

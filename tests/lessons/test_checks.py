@@ -145,6 +145,15 @@ def test_permuted_items():
     assert checks.permuted(STACK[[1, 0, 2]] + 5.0, STACK) is None
 
 
+def test_same_as_mistake_fires_only_when_the_graders_comparison_passed():
+    ok, bad = checks.allclose(np.ones(3), np.ones(3)), checks.allclose(np.ones(3), np.zeros(3))
+    assert ok.passed and not bad.passed
+    found = checks.detect("same_as_mistake", np.ones(3), np.zeros(3), {"outcome": ok, "mistake": "argmax"})
+    assert found == "your result is what the known mistake 'argmax' computes"
+    assert checks.detect("same_as_mistake", np.ones(3), np.zeros(3), {"outcome": bad, "mistake": "argmax"}) is None
+    assert checks.detect("same_as_mistake", np.ones(3), np.zeros(3), {"mistake": "argmax"}) is None
+
+
 def test_detect_tolerates_shapes_that_do_not_apply():
     assert checks.detect("transposed", np.ones(3), np.ones(3), {}) is None
     assert checks.detect("entry_zero", np.ones(3), np.ones(3), {"index": [0, 1]}) is None

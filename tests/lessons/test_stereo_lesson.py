@@ -94,6 +94,29 @@ def test_the_exact_left_right_match_is_recognised(stereo_lesson):
     assert "after running the pipeline to filter_disparity on your consistent" in pipeline
 
 
+@pytest.mark.parametrize("fixture,task,hint", [
+    ("wrong_cost_shift_direction.py", COST, "your volume compares left pixel x with right pixel x + d"),
+    ("wrong_wta_argmax.py", "Winner-take-all", "you keep the disparity of the highest cost"),
+    ("wrong_lr_check_direction.py", LR, "you read the right image's disparity at x + d_L"),
+])
+def test_mistakes_visible_only_in_the_steps_inputs_are_named(stereo_lesson, other_mistakes, fixture, task, hint):
+    """lessons/03-stereo/mistakes.py: the grader runs the known wrong implementation on the same inputs, so
+    a shift the wrong way or an argmax gets its hint on every check it fails, and on no other."""
+    report = grade(stereo_lesson, submission("stereo", fixture), seed=SEED)
+    lost = failed(report)
+    assert lost and all(name.startswith(task) for name in lost)
+    for output in lost.values():
+        assert f"Hint: {hint}" in output
+    assert hint not in other_mistakes
+
+
+@pytest.fixture(scope="module")
+def other_mistakes(stereo_lesson) -> str:
+    """What two other wrong submissions are told: no hint about a shift direction or an argmax."""
+    return "".join(output for other in ("wrong_no_window_aggregation.py", "wrong_lr_check_exact_match.py")
+                   for output in failed(grade(stereo_lesson, submission("stereo", other), seed=SEED)).values())
+
+
 def test_the_lessons_conventions_are_the_modules():
     """What lesson.md and starter.py promise, on a tiny pair: flat NCC windows cost 1, ties take the first
     disparity, and a match left of the right image fails the check."""
