@@ -217,7 +217,8 @@ class Lesson:
             return {}
         namespace: dict[str, Any] = {"__name__": f"lab_lesson_mistakes_{self.id.replace('-', '_')}"}
         exec(compile(self.mistakes_source, str(self.path / "mistakes.py"), "exec"), namespace)  # noqa: S102 - the author's file
-        return {name: value for name, value in namespace.items() if inspect.isfunction(value)}
+        return {name: value for name, value in namespace.items()
+                if inspect.isfunction(value) and value.__module__ == namespace["__name__"]}  # not the imported ones
 
     @property
     def points(self) -> float:

@@ -157,29 +157,34 @@ MISTAKE_HINT = '{ when = "same_as_mistake", mistake = "%s", say = "you forgot to
 SCALE_HINT = '{ when = "same_as_reference_with", params = { scale = 1 }, say = "you ignore the control scale: multiply by it" }'
 
 
-@pytest.mark.parametrize("mistakes,name,reason", [
-    (None, "means_unscaled", "defines no function 'means_unscaled' (is the file missing?)"),
-    ("def means_unscaled(noisy, *, scale=1):\n    return noisy\n", "means_typo", "it defines ['means_unscaled']"),
+@pytest.mark.parametrize("extra,name,reason", [
+    (None, "means_unscaled", "defines no function 'noisy_without_clipping' (is the file missing?)"),
+    ("", "means_typo", "defines no function 'means_typo'; it defines ['means_summed', 'noisy_without_clipping']"),
     ("def means_unscaled(noisy, *, factor=1):\n    return noisy\n", "means_unscaled", "differs from the step's"),
-    ("def means_unscaled(noisy, *, scale=1)\n", "means_unscaled", "line 1"),
-    ("def means_unscaled(noisy, *, scale=1):\n    return noisy\n", "", "names a function of mistakes.py"),
+    ("def means_unscaled(noisy, *, scale=1)\n", "means_unscaled", "line"),
+    ("", "", "names a function of mistakes.py"),
 ])
-def test_a_mistake_hint_names_a_function_of_mistakes_py_with_the_steps_parameters(tmp_path, mistakes, name, reason):
+def test_a_mistake_hint_names_a_function_of_mistakes_py_with_the_steps_parameters(tmp_path, extra, name, reason):
     folder = copy_toy(tmp_path, tasks=edited(SCALE_HINT, MISTAKE_HINT % name))
-    if mistakes is not None:
-        (folder / "mistakes.py").write_text(mistakes)
+    if extra is None:
+        (folder / "mistakes.py").unlink()
+    else:
+        (folder / "mistakes.py").write_text((TOY / "mistakes.py").read_text() + "\n\n" + extra)
     with pytest.raises(LessonFormatError) as caught:
         load_lesson(folder)
+    assert caught.value.field.startswith("00-toy/tasks.toml") or "mistakes.py" in caught.value.field
     assert reason in caught.value.reason, caught.value.reason
 
 
 def test_mistakes_py_is_loaded_once_and_never_shown_to_students(tmp_path):
     folder = copy_toy(tmp_path, tasks=edited(SCALE_HINT, MISTAKE_HINT % "means_unscaled"))
-    (folder / "mistakes.py").write_text("SECRET = 1\n\ndef means_unscaled(noisy, *, scale=1):\n    return 42\n")
+    (folder / "mistakes.py").write_text((TOY / "mistakes.py").read_text()
+                                        + "\n\nSECRET = 1\n\ndef means_unscaled(noisy, *, scale=1):\n    return 42\n")
     lesson = load_lesson(folder)
-    assert set(lesson.mistakes) == {"means_unscaled"} and lesson.mistakes["means_unscaled"](None) == 42
+    assert set(lesson.mistakes) == {"means_unscaled", "means_summed", "noisy_without_clipping"}
+    assert lesson.mistakes["means_unscaled"](None) == 42
     assert lesson.mistakes is lesson.mistakes
-    assert "means_unscaled" not in str(lesson.describe()) and load_lesson(TOY).mistakes == {}
+    assert "means_unscaled" not in str(lesson.describe())
 
 
 def test_missing_files_and_bad_folder_names(tmp_path):
