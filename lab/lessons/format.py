@@ -546,6 +546,11 @@ def validate_lesson(lesson: Lesson) -> None:
             _controls(step_spec, controls, f"{where}: datasets.{name}.params.{step}")
     starter = _functions(lesson.starter, f"{lesson.id}/starter.py")
     mistakes = _functions(lesson.mistakes_source, f"{lesson.id}/mistakes.py")
+    if mistakes:
+        try:
+            lesson.mistakes  # noqa: B018 - run it once now: an import error is the author's to see, not a grading's
+        except Exception as exc:  # noqa: BLE001 - any error of the author's file
+            raise LessonFormatError(f"{lesson.id}/mistakes.py", f"fails to run: {type(exc).__name__}: {exc}") from None
     for ti, task in enumerate(lesson.tasks):
         at = f"{where}: tasks[{ti}]"
         spec = _known(lambda: pipeline.step(task.step), f"{at}.step")

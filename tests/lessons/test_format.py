@@ -176,6 +176,14 @@ def test_a_mistake_hint_names_a_function_of_mistakes_py_with_the_steps_parameter
     assert reason in caught.value.reason, caught.value.reason
 
 
+def test_a_mistakes_py_that_fails_to_run_is_a_format_error(tmp_path):
+    folder = copy_toy(tmp_path)
+    (folder / "mistakes.py").write_text((TOY / "mistakes.py").read_text() + "\nimport no_such_module_here\n")
+    with pytest.raises(LessonFormatError, match="fails to run: ModuleNotFoundError") as caught:
+        load_lesson(folder)
+    assert caught.value.field == "00-toy/mistakes.py"
+
+
 def test_mistakes_py_is_loaded_once_and_never_shown_to_students(tmp_path):
     folder = copy_toy(tmp_path, tasks=edited(SCALE_HINT, MISTAKE_HINT % "means_unscaled"))
     (folder / "mistakes.py").write_text((TOY / "mistakes.py").read_text()

@@ -70,13 +70,36 @@ def test_the_starter_scores_zero_with_a_message_on_every_test(toy_lesson):
                        "Mean intensity: the instructor's data", "Mean intensity: normalized means from yours"},
      "right up to a scale factor"),
     ("wrong_no_clip.py", {"Noisy images: same noisy images as the reference",
-                          "Noisy images: the means of your noisy images"}, "Expected:"),
+                          "Noisy images: the means of your noisy images"}, "your noisy pixels leave [0, 1]: clip them"),
 ])
 def test_wrong_implementations_lose_exactly_their_checks(toy_lesson, fixture, failed, hint):
     report = grade(toy_lesson, submission("toy", fixture))
     assert failed_checks(report) == failed
     assert report.score == report.max_score - sum(t.max_score for t in report.tests if t.name in failed)
     assert any(hint in t.output for t in report.tests if t.name in failed)
+
+
+def test_a_mistake_that_fails_while_grading_costs_its_hint_not_the_grading(tmp_path, toy_lesson):
+    """mistakes.py is the author's code: if one of its functions raises on the data, the check keeps its
+    message without that hint, and every other check is graded as usual."""
+    import shutil
+
+    from lab.lessons.format import load_lesson
+
+    folder = tmp_path / toy_lesson.id
+    shutil.copytree(toy_lesson.path, folder)
+    mistakes = folder / "mistakes.py"
+    mistakes.write_text(mistakes.read_text().replace('"""Each image\'s sum instead of its mean."""',
+                                                     '"""Broken."""\n    raise RuntimeError("broken mistake")'))
+    broken = load_lesson(folder)
+    report = grade(broken, submission("toy", "wrong_sums.py"), seed=3)
+    lost = {t.name: t.output for t in report.tests if t.status == "failed"}
+    assert set(lost) == {"Mean intensity: same means as the reference", "Mean intensity: scale = 3",
+                         "Mean intensity: the instructor's data", "Mean intensity: normalized means from yours"}
+    assert "Expected:" in lost["Mean intensity: scale = 3"]
+    assert not any("you sum each image's pixels" in output for output in lost.values())
+    assert "you sum each image's pixels" in "".join(t.output for t in grade(toy_lesson, submission(
+        "toy", "wrong_sums.py"), seed=3).tests)
 
 
 def test_messages_say_which_check_what_was_expected_and_what_came_back(toy_lesson):
