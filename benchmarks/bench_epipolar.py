@@ -1,6 +1,6 @@
 """Epipolar geometry: our F -> E -> pose pipeline against OpenCV's, on the same matches.
 
-Three data sets, in one run:
+Four data sets, in one run:
 
 * the synthetic benchmark (the headline numbers, issue 4): the ``correspondences`` dataset with
   1 px noise and 30 % wrong matches, 400 random points seen by two known cameras 1 m apart at 5 m
@@ -14,7 +14,12 @@ Three data sets, in one run:
   about 3 % wrong matches, so RANSAC has little to do: OpenCV's FM_RANSAC stops after a handful of
   7-point samples (about 0.3 ms) and our step's fixed costs (the local optimization, the Sampson
   refit, the degeneracy check) weigh most; the ``rendered_`` keys report it;
-* OpenCV's leuvenA/B photos with their K (``../shared/data/opencv-samples``).
+* OpenCV's leuvenA/B photos with their K (``../shared/data/opencv-samples``);
+* the easy rendered pair (the "room" scene, seed 0): our RANSAC step beside ``cv2.findFundamentalMat``
+  (``time_ratio_rendered``, the fixed cost of a call), and our descriptor matching beside
+  ``cv2.BFMatcher(cv2.NORM_L2).knnMatch(k=2)`` (``match_time_ratio``, ours / OpenCV; our search also finds
+  the back matches of the mutual check, which OpenCV needs a second ``match`` call for:
+  ``match_time_ratio_cross_check``).
 
 Methods on the same matches:
 
@@ -42,7 +47,7 @@ The last line is ``RESULT {json}`` with the keys of issue 4: ``rot_err_deg_ours`
 ``rot_err_deg_opencv``, ``tdir_err_deg_ours``, ``tdir_err_deg_opencv`` (medians over the synthetic
 seeds), ``time_ratio`` (ours / OpenCV RANSAC, synthetic), ``leuven_inlier_overlap``,
 ``leuven_sampson_ratio`` (ours / OpenCV), then extras (per OpenCV method, rendered scenes, leuven
-times).
+times, ``time_ratio_rendered`` and ``match_time_ratio`` of the easy pair).
 """
 
 from __future__ import annotations
@@ -64,7 +69,8 @@ import numpy as np  # noqa: E402
 from lab.core import open_session  # noqa: E402
 from lab.geometry.rotations import rotation_angle_deg  # noqa: E402
 from lab.modules.epipolar import (PIPELINE, decompose_essential, estimate_essential,  # noqa: E402
-                                  estimate_fundamental_ransac, recover_pose, refine_pose, sampson_distance)
+                                  estimate_fundamental_ransac, match_features, nearest_neighbours,
+                                  nearest_neighbours_reference, recover_pose, refine_pose, sampson_distance)
 
 SAMPLES = Path(__file__).resolve().parents[1] / ".." / "shared" / "data" / "opencv-samples"
 THRESHOLD_PX = 1.0  # rendered SIFT matches (~0.3 px noise) and leuven
@@ -209,6 +215,55 @@ def compare_leuven(repeat: int) -> dict:
     return out
 
 
+def compare_easy_pair(repeat: int, seed: int = 0) -> dict:
+    """The easy rendered pair (the "room" scene, seed 0): RANSAC and matching times, ours beside OpenCV's.
+
+    RANSAC: ``estimate_fundamental_ransac`` (the whole step) against ``cv2.findFundamentalMat(FM_RANSAC)`` on
+    the same SIFT matches (few wrong ones: both stop after a few samples, so this measures the fixed cost of a
+    call). Matching: our two-nearest-neighbour search (``nearest_neighbours``: the two nearest of each
+    descriptor of image 1 and the nearest of each of image 2, for the mutual check) against
+    ``cv2.BFMatcher(cv2.NORM_L2).knnMatch(d1, d2, k=2)`` alone (``match_time_ratio``) and with the
+    ``.match(d2, d1)`` a cross check needs (``match_time_ratio_cross_check``); the float64 reference
+    (``nearest_neighbours_reference``) is timed too, and our matches are checked identical to its.
+    """
+    session = open_session(PIPELINE, "rendered", {"seed": seed}, seed=seed)
+    session.run("detect_features")
+    session.run("match_features")
+    keypoints, descriptors = session.state["keypoints"], session.state["descriptors"]
+    x1, x2 = session.state["x1"], session.state["x2"]
+    rng = np.random.default_rng(seed)
+    ours_result = estimate_fundamental_ransac(x1, x2, threshold_px=THRESHOLD_PX, rng=np.random.default_rng(seed))
+    _, mask_cv = cv2.findFundamentalMat(x1, x2, cv2.FM_RANSAC, THRESHOLD_PX, 0.99)
+    t_ours = median_seconds(lambda: estimate_fundamental_ransac(x1, x2, threshold_px=THRESHOLD_PX, rng=rng), repeat)
+    t_cv = median_seconds(lambda: cv2.findFundamentalMat(x1, x2, cv2.FM_RANSAC, THRESHOLD_PX, 0.99), repeat)
+    d1, d2 = descriptors[keypoints.view == 0], descriptors[keypoints.view == 1]
+    matcher = cv2.BFMatcher(cv2.NORM_L2)
+    t_nn = median_seconds(lambda: nearest_neighbours(d1, d2), repeat)
+    t_reference = median_seconds(lambda: nearest_neighbours_reference(d1, d2), repeat)
+    t_step = median_seconds(lambda: match_features(keypoints, descriptors), repeat)
+    t_knn = median_seconds(lambda: matcher.knnMatch(d1, d2, k=2), repeat)
+    t_cross = median_seconds(lambda: (matcher.knnMatch(d1, d2, k=2), matcher.match(d2, d1)), repeat)
+    fast, slow = nearest_neighbours(d1, d2), nearest_neighbours_reference(d1, d2)
+    identical = bool(np.array_equal(fast[0], slow[0]) and np.array_equal(fast[3], slow[3])
+                     and np.array_equal(fast[1] < 0.8 * fast[2], slow[1] < 0.8 * slow[2]))
+    out = {"matches": len(x1), "inliers_ours": ours_result.num_inliers, "inliers_cv": int(mask_cv.sum()),
+           "iterations_ours": ours_result.iterations, "t_ours_ms": 1000 * t_ours, "t_cv_ms": 1000 * t_cv,
+           "time_ratio": t_ours / t_cv, "descriptors": (len(d1), len(d2)), "t_nn_ms": 1000 * t_nn,
+           "t_reference_ms": 1000 * t_reference, "t_step_ms": 1000 * t_step, "t_knn_ms": 1000 * t_knn,
+           "t_cross_ms": 1000 * t_cross, "match_time_ratio": t_nn / t_knn,
+           "match_time_ratio_cross_check": t_nn / t_cross, "match_speedup_vs_reference": t_reference / t_nn,
+           "match_identical": identical}
+    print(f"\nEasy rendered pair ('room', seed {seed}, 640x480): {len(x1)} matches")
+    print(f"  RANSAC   ours {out['t_ours_ms']:7.2f} ms ({out['inliers_ours']} inliers, "
+          f"{out['iterations_ours']} samples) | "
+          f"cv2 FM_RANSAC {out['t_cv_ms']:7.2f} ms ({out['inliers_cv']} inliers) | ratio {out['time_ratio']:.2f}")
+    print(f"  matching {len(d1)} x {len(d2)} SIFT: ours {out['t_nn_ms']:7.2f} ms (match_features step "
+          f"{out['t_step_ms']:.2f} ms; float64 reference {out['t_reference_ms']:.2f} ms, identical: {identical}) | "
+          f"cv2 knnMatch k=2 {out['t_knn_ms']:7.2f} ms, + match() for the cross check {out['t_cross_ms']:7.2f} ms | "
+          f"ratio {out['match_time_ratio']:.2f} ({out['match_time_ratio_cross_check']:.2f} with the cross check)")
+    return out
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--seeds", type=int, default=20, help="synthetic correspondence sets (issue 4: 20)")
@@ -228,6 +283,7 @@ def main() -> None:
     rendered = summarize(rendered_rows)
     print_table("Rendered 'room' scenes, 640x480, baseline 0.5 m, SIFT matches", rendered_rows, rendered)
     leuven = compare_leuven(args.repeat)
+    easy = compare_easy_pair(args.repeat)
     result = {
         "rot_err_deg_ours": corr["rot_ours"], "rot_err_deg_opencv": corr["rot_cv"],
         "tdir_err_deg_ours": corr["trans_ours"], "tdir_err_deg_opencv": corr["trans_cv"],
@@ -254,6 +310,12 @@ def main() -> None:
         "leuven_time_ratio": leuven["time_ratio"], "leuven_ransac_ms_ours": leuven["t_ours_ms"],
         "leuven_ransac_ms_opencv": leuven["t_cv_ms"],
         "seeds": args.seeds, "rendered_seeds": args.rendered_seeds,
+        "time_ratio_rendered": easy["time_ratio"], "rendered_easy_ransac_ms_ours": easy["t_ours_ms"],
+        "rendered_easy_ransac_ms_opencv": easy["t_cv_ms"],
+        "match_time_ratio": easy["match_time_ratio"],
+        "match_time_ratio_cross_check": easy["match_time_ratio_cross_check"],
+        "match_ms_ours": easy["t_nn_ms"], "match_ms_reference": easy["t_reference_ms"],
+        "match_ms_opencv_knn": easy["t_knn_ms"], "match_identical_to_reference": easy["match_identical"],
     }
     print("RESULT " + json.dumps({k: round(v, 5) if isinstance(v, float) else v for k, v in result.items()}))
 

@@ -935,3 +935,263 @@ def test_homography_screen_against_opencv():
         loaded = correspondences(outlier_rate=0.0, **options, seed=21)
         share = _best_homography_share(loaded.state["x1"][:200], loaded.state["x2"][:200], 4.0)
         assert low <= share <= high, options
+
+
+def test_compiled_ransac_kernels_equal_their_readable_oracles(noisy):
+    """The compiled post-processing of RANSAC against the NumPy forms it replaces (and its own Python form)."""
+    from lab.modules.epipolar import (_Scorer, _best_homography_share, _count_inliers, _count_inliers_py,
+                                      _fit_masked, _fixed_samples, _minimal_fundamentals,
+                                      _minimal_fundamentals_compiled, _minimal_fundamentals_py, _rank2,
+                                      _homography_share, _homography_share_py, _inliers, _inliers_py,
+                                      _local_optimization, _local_optimization_py, _local_optimization_reference,
+                                      _noise_sigma, _noise_sigma_py, _refit, _refit_py, _sampson_distances,
+                                      _sampson_distances_py, _sampson_refit, _solve_in_place, _solve_in_place_py,
+                                      _transform_fundamental, _transform_fundamental_py,
+                                      _truncated_variance_factor, noise_sigma)
+
+    x1, x2 = noisy.state["x1"], noisy.state["x2"]
+    rng = np.random.default_rng(5)
+    guesses = [noisy.truth["F"], eight_point(x1, x2), rng.normal(size=(3, 3))]
+    for F in guesses:
+        for error in ("sampson", "epipolar"):
+            for threshold in (0.5, 1.0, 3.0):
+                expected = _Scorer(x1, x2, error, threshold).inliers(F)
+                np.testing.assert_array_equal(_inliers(x1, x2, F, threshold**2, error == "sampson"), expected)
+        np.testing.assert_allclose(_sampson_distances(F, x1, x2), sampson_distance(F, x1, x2), rtol=1e-10)
+    # the minimal solver: the batched NumPy form (QR of A^T, SVD) and the 8-point algorithm of each sample
+    samples = np.random.default_rng(3).permutation(len(x1))[:8 * 40].reshape(40, 8)
+    compiled = _minimal_fundamentals_compiled(x1, x2, samples)
+    np.testing.assert_allclose(compiled, _minimal_fundamentals(x1[samples], x2[samples]), atol=1e-9)  # same sign
+    for a, b in zip(compiled, eight_point(x1[samples], x2[samples])):
+        np.testing.assert_allclose(unit(a), unit(b), atol=1e-9)
+    np.testing.assert_allclose(_minimal_fundamentals_py(x1, x2, samples[:3]), compiled[:3], atol=1e-12)
+    for F in guesses:
+        np.testing.assert_allclose(_rank2(F), enforce_rank2(F), atol=1e-12)
+    batch = np.stack(guesses + [np.full((3, 3), np.nan)])
+    for error in ("sampson", "epipolar"):
+        scorer = _Scorer(x1, x2, error, 1.5)
+        expected = np.append(scorer.counts(batch[:-1]), -1)  # a non-finite F scores -1
+        np.testing.assert_array_equal(_count_inliers(x1, x2, batch, 2.25, error == "sampson"), expected)
+        np.testing.assert_array_equal(_count_inliers_py(x1[:40], x2[:40], batch, 2.25, error == "sampson"),
+                                      _count_inliers(x1[:40], x2[:40], batch, 2.25, error == "sampson"))
+    few = slice(0, 40)  # the interpreted Python forms are slow: a few pairs
+    np.testing.assert_array_equal(_inliers_py(x1[few], x2[few], guesses[0], 1.0, True),
+                                  _inliers(x1[few], x2[few], guesses[0], 1.0, True))
+    np.testing.assert_allclose(_sampson_distances_py(guesses[1], x1[few], x2[few]),
+                               _sampson_distances(guesses[1], x1[few], x2[few]), rtol=1e-12)
+    # Sampson distances where the gradient vanishes: NumPy's 0/0 = nan and r/0 = inf
+    zero = np.zeros((3, 3))
+    zero[2, 2] = 1.0
+    with np.errstate(divide="ignore", invalid="ignore"):
+        np.testing.assert_array_equal(_sampson_distances(zero, x1[:3], x2[:3]), sampson_distance(zero, x1[:3], x2[:3]))
+    # T2^T F T1 written out
+    G = rng.normal(size=(3, 3))
+    T1 = np.array([[2.0, 0.0, 0.3], [0.0, 2.0, -0.7], [0.0, 0.0, 1.0]])
+    T2 = np.array([[0.5, 0.0, 1.1], [0.0, 0.5, 0.2], [0.0, 0.0, 1.0]])
+    for transform in (_transform_fundamental, _transform_fundamental_py):
+        np.testing.assert_allclose(transform(G, 2.0, np.array([0.3, -0.7]), 0.5, np.array([1.1, 0.2])),
+                                   T2.T @ G @ T1, rtol=1e-14)
+    # the refits: unweighted = the 8-point algorithm of the selection, weighted = the readable Sampson refit
+    inliers = ~noisy.truth["outliers"]
+    for weights in (np.zeros((3, 3)), _fit_masked(x1, x2, inliers)[1]):
+        F_numpy, Fn_numpy, n_numpy = _fit_masked(x1, x2, inliers, None if not weights.any() else weights)
+        for refit in (_refit, _refit_py):
+            F_fast, Fn_fast, n_fast = refit(x1, x2, inliers, weights)
+            np.testing.assert_allclose(unit(F_fast), unit(F_numpy), atol=1e-10)
+            np.testing.assert_allclose(unit(Fn_fast), unit(Fn_numpy), atol=1e-10)
+            np.testing.assert_allclose(n_fast, n_numpy, rtol=1e-12)
+    a, b = x1[inliers], x2[inliers]
+    start = eight_point(a, b)
+    np.testing.assert_allclose(unit(_sampson_refit(start, x1, x2, inliers, 3)),
+                               unit(_slow_sampson_weighted_refit(start, a, b)), atol=1e-10)
+    # local optimization from a minimal sample's F: same F and inliers as the NumPy loop, compiled or not
+    sample = np.flatnonzero(inliers)[:8]
+    F0 = eight_point(x1[sample], x2[sample])
+    for error in ("sampson", "epipolar"):
+        scorer = _Scorer(x1, x2, error, 1.0)
+        F_ref, mask_ref = _local_optimization_reference(F0, x1, x2, scorer)
+        for lo in (_local_optimization, _local_optimization_py):
+            F_lo, mask_lo = lo(F0, x1, x2, 1.0, error == "sampson")
+            np.testing.assert_array_equal(mask_lo, mask_ref)
+            np.testing.assert_allclose(unit(F_lo), unit(F_ref), atol=1e-10)
+    # the homography screen and the noise scale
+    for options in ({"structure": "plane"}, {"baseline": 0.0}, {}, {"noise_px": 2.0}):
+        loaded = correspondences(outlier_rate=0.0, **options, seed=21)
+        p, q = loaded.state["x1"][:200], loaded.state["x2"][:200]
+        picks = _fixed_samples(len(p), 4, 20)
+        assert _homography_share(p, q, picks, 4.0) == pytest.approx(_best_homography_share(p, q, 4.0), abs=0.011)
+        small = _fixed_samples(30, 4, 20)
+        assert _homography_share_py(p[:30], q[:30], small, 4.0) == _homography_share(p[:30], q[:30], small, 4.0)
+    repeated = np.array([[0, 0, 1, 2]])  # a singular sample: -1, and the caller falls back on the NumPy form
+    assert _homography_share(p, q, repeated, 4.0) == -1.0
+    A, rhs = rng.normal(size=(8, 8)), rng.normal(size=8)
+    np.testing.assert_allclose(_solve_in_place(A.copy(), rhs.copy()), np.linalg.solve(A, rhs), rtol=1e-10)
+    np.testing.assert_allclose(_solve_in_place_py(A.copy(), rhs.copy()), np.linalg.solve(A, rhs), rtol=1e-10)
+    A[:, 2] = 0.0  # singular: an exactly zero pivot
+    assert np.all(np.isnan(_solve_in_place(A.copy(), rhs.copy())))
+    with np.errstate(divide="ignore", invalid="ignore"):
+        distances = sampson_distance(noisy.truth["F"], x1, x2)
+    finite = np.abs(distances[np.isfinite(distances)])
+    for start_px in (0.1, 1.0, 5.0):
+        start = max(1.4826 * np.median(finite), start_px, 0.01)
+        assert _noise_sigma(finite, start, 3.0, _truncated_variance_factor(3.0), 30, 0.01) == \
+            pytest.approx(noise_sigma(distances, start_px=start_px), rel=1e-9)
+        assert _noise_sigma_py(finite, start, 3.0, _truncated_variance_factor(3.0), 30, 0.01) == \
+            pytest.approx(noise_sigma(distances, start_px=start_px), rel=1e-9)
+    # the collinearity screen: the RMS distance from the best line, as the SVD of the centred points says
+    from lab.modules.epipolar import _distance_from_best_line, _distance_from_best_line_py
+
+    for off_line in (0.0, 0.01, 1.0, 30.0):
+        t = rng.uniform(-300, 300, 200)
+        points = np.column_stack([320 + t * 0.8, 240 + t * 0.6])
+        points += np.outer(rng.normal(size=200), [-0.6, 0.8]) * off_line
+        mask = rng.random(200) < 0.7
+        centred = points[mask] - points[mask].mean(axis=0)
+        expected = np.linalg.svd(centred, compute_uv=False)[1] / np.sqrt(mask.sum())
+        assert _distance_from_best_line(points, mask) == pytest.approx(expected, rel=1e-6, abs=1e-5)
+        assert _distance_from_best_line_py(points, mask) == pytest.approx(_distance_from_best_line(points, mask),
+                                                                          rel=1e-12, abs=1e-12)
+
+
+def test_ransac_gives_the_same_answer_through_the_numpy_oracles(noisy, rendered_session):
+    """The whole step with its compiled parts swapped for the readable NumPy forms: the same inliers and F."""
+    import lab.modules.epipolar as module
+
+    def numpy_local_optimization(F, x1, x2, t2, sampson):
+        return module._local_optimization_reference(F, x1, x2, module._Scorer(x1, x2, "sampson" if sampson else
+                                                                              "epipolar", np.sqrt(t2)))
+
+    def numpy_sampson_refit(F, x1, x2, mask, iterations):
+        return module._sampson_weighted_refit(F, x1[mask], x2[mask], iterations)
+
+    def numpy_inliers(x1, x2, F, t2, sampson):
+        return module._Scorer(x1, x2, "sampson" if sampson else "epipolar", np.sqrt(t2)).inliers(F)
+
+    def numpy_counts(x1, x2, F, t2, sampson):
+        finite = np.all(np.isfinite(F), axis=(1, 2))
+        scorer = module._Scorer(x1, x2, "sampson" if sampson else "epipolar", np.sqrt(t2))
+        return np.where(finite, scorer.counts(np.where(finite[:, None, None], F, 0.0)), -1)
+
+    def numpy_minimal(x1, x2, samples):
+        with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
+            return module._minimal_fundamentals(x1[samples], x2[samples])
+
+    pairs = [(noisy.state["x1"], noisy.state["x2"]), (rendered_session.state["x1"], rendered_session.state["x2"])]
+    fast = [estimate_fundamental_ransac(a, b, rng=np.random.default_rng(4)) for a, b in pairs]
+    with pytest.MonkeyPatch.context() as patch:
+        patch.setattr(module, "_local_optimization", numpy_local_optimization)
+        patch.setattr(module, "_sampson_refit", numpy_sampson_refit)
+        patch.setattr(module, "_inliers", numpy_inliers)
+        patch.setattr(module, "_count_inliers", numpy_counts)
+        patch.setattr(module, "_minimal_fundamentals_compiled", numpy_minimal)
+        patch.setattr(module, "_sampson_distances", module.sampson_distance)
+        slow = [estimate_fundamental_ransac(a, b, rng=np.random.default_rng(4)) for a, b in pairs]
+    for f, s in zip(fast, slow):
+        np.testing.assert_array_equal(f.inliers, s.inliers)
+        assert f.iterations == s.iterations
+        np.testing.assert_allclose(unit(f.F), unit(s.F), atol=1e-9)
+        assert f.sampson_rms_px == pytest.approx(s.sampson_rms_px, rel=1e-9)
+
+
+# --- the fast matcher against its float64 reference ---------------------------------------------------
+def _assert_same_neighbours(query, train, chunk=1024):
+    from lab.modules.epipolar import nearest_neighbours_reference
+
+    first, d1, d2, back = nearest_neighbours(query, train, chunk=chunk)
+    first_ref, d1_ref, d2_ref, back_ref = nearest_neighbours_reference(query, train, chunk=chunk)
+    np.testing.assert_array_equal(first, first_ref)
+    np.testing.assert_array_equal(back, back_ref)
+    # both compute |q|^2 + |t|^2 - 2 q.t in float64: equal within its rounding, ~1e-16 (|q|^2 + |t|^2)
+    qq = np.sum(np.asarray(query, np.float64) ** 2, axis=1)
+    scale = qq + np.max(np.sum(np.asarray(train, np.float64) ** 2, axis=1))
+    np.testing.assert_array_less(np.abs(d1**2 - d1_ref**2), 1e-13 * scale)
+    finite = np.isfinite(d2_ref)
+    np.testing.assert_array_equal(np.isfinite(d2), finite)
+    np.testing.assert_array_less(np.abs(d2[finite]**2 - d2_ref[finite]**2), 1e-13 * scale[finite])
+    return first, d1, d2, back
+
+
+def test_fast_matcher_equals_the_float64_reference_on_sift(rendered_session):
+    """SIFT descriptors of a rendered pair: the float32 matcher gives the float64 reference's neighbours and
+    distances, so match_features keeps exactly the same matches."""
+    from lab.modules.epipolar import nearest_neighbours_reference
+
+    keypoints, descriptors = rendered_session.state["keypoints"], rendered_session.state["descriptors"]
+    query, train = descriptors[keypoints.view == 0], descriptors[keypoints.view == 1]
+    assert len(query) > 500 and len(train) > 500
+    for chunk in (1024, 97):
+        first, d1, d2, back = _assert_same_neighbours(query, train, chunk)
+    _, d1_ref, d2_ref, back_ref = nearest_neighbours_reference(query, train)
+    for ratio in (0.6, 0.8, 0.95):
+        np.testing.assert_array_equal(d1 < ratio * d2, d1_ref < ratio * d2_ref)
+    result = match_features(keypoints, descriptors)
+    np.testing.assert_array_equal(result.matches, rendered_session.state["matches"])
+    index1, index2 = np.flatnonzero(keypoints.view == 0), np.flatnonzero(keypoints.view == 1)
+    keep = (d1_ref < 0.8 * d2_ref) & (back_ref[first] == np.arange(len(query)))
+    np.testing.assert_array_equal(result.matches, np.column_stack([index1[keep], index2[first[keep]]]))
+
+
+def test_fast_matcher_on_adversarial_near_ties():
+    """Near-ties that float32 cannot separate (relative gaps of 1e-9, far below its 6e-8 resolution) but float64
+    can: the float32 pass must hand them to the float64 re-check, for the nearest, the second and the back match."""
+    rng = np.random.default_rng(0)
+    base = rng.uniform(0, 200, (60, 128))  # |q|^2 ~ 1.7e6: float32 distances are off by ~0.1, float64 by ~1e-9
+
+    def shell(centre, gaps):
+        """Points around ``centre`` at squared distances ``400 + gaps`` (gaps ~1e-3: float32 ties them)."""
+        directions = rng.normal(size=(len(gaps), 128))
+        directions /= np.linalg.norm(directions, axis=1, keepdims=True)
+        return centre + directions * np.sqrt(400.0 + gaps)[:, None]
+
+    # each query: 40 train rows at nearly the same distance; the nearest and second are known (the smallest gaps)
+    queries, train, nearest, runner_up = base[:8], [], [], []
+    for i, q in enumerate(queries):
+        gaps = rng.permutation(np.linspace(1e-3, 4e-2, 40))
+        train.append(shell(q, gaps))
+        nearest.append(40 * i + int(np.argmin(gaps)))
+        runner_up.append(40 * i + int(np.argsort(gaps)[1]))
+    train = np.concatenate(train)
+    first, d1, d2, back = _assert_same_neighbours(queries, train)
+    np.testing.assert_array_equal(first, nearest)
+    assert np.all(d2 - d1 < 1e-4)  # really near-ties: 1e-3 in squared distance
+    for chunk in (3, 1):  # the same across blocks
+        _assert_same_neighbours(queries, train, chunk)
+    # each train row: 30 queries at nearly the same distance (the back match of the mutual check)
+    rows = base[8:12]
+    crowd = np.concatenate([shell(t, rng.permutation(np.linspace(1e-3, 3e-2, 30))) for t in rows])
+    _, _, _, back = _assert_same_neighbours(crowd, rows, chunk=7)
+    distances = np.sum((crowd[:, None, :] - rows[None, :, :]) ** 2, axis=2)
+    np.testing.assert_array_equal(back, np.argmin(distances, axis=0))
+    # the ratio test right at its boundary: float64 distances decide, as in the reference
+    query3 = np.zeros((1, 4))
+    train3 = np.array([[8.0, 0, 0, 0], [0, 10.0 * (1 + 1e-12), 0, 0], [0, 0, 0, 50.0]])
+    first, d1, d2, _ = _assert_same_neighbours(query3, train3)
+    assert first[0] == 0 and bool(d1[0] < 0.8 * d2[0])
+    # exact duplicates in float64: lowest index first, like the reference's back matches
+    dup = np.concatenate([base[:5], base[:5]])
+    first, _, _, back = nearest_neighbours(base[:5], dup)
+    np.testing.assert_array_equal(first, np.arange(5))
+    _assert_same_neighbours(dup, base[:5])
+
+
+def test_two_nearest_scan_kernel_equals_its_python_form():
+    from lab.modules.epipolar import _two_nearest_scan, _two_nearest_scan_py
+
+    rng = np.random.default_rng(2)
+    dots = rng.normal(size=(23, 31)).astype(np.float32)
+    dots[3, 7] = dots[3, 8]  # an exact tie
+    qq, tt = rng.uniform(5, 6, 23), rng.uniform(5, 6, 31)
+    outputs = []
+    for scan in (_two_nearest_scan, _two_nearest_scan_py):
+        out = [np.empty(23, np.int64), np.empty(23, np.int64), np.empty(23, bool), np.full(31, np.inf),
+               np.zeros(31, np.int64), np.full(31, np.inf)]
+        for start in (0, 10):  # two blocks, the column state carried over
+            rows = slice(start, min(start + 10, 23) if start == 0 else 23)
+            scan(dots[rows], qq[rows], tt, start, 1e-3, out[0][rows], out[1][rows], out[2][rows], *out[3:])
+        outputs.append(out)
+    for fast, slow in zip(*outputs):
+        np.testing.assert_array_equal(fast, slow)
+    squared = qq[:, None] + tt[None, :] - 2.0 * dots.astype(np.float64)
+    np.testing.assert_array_equal(outputs[0][0], np.argmin(squared, axis=1))
+    np.testing.assert_array_equal(outputs[0][4], np.argmin(squared, axis=0))
+    np.testing.assert_array_equal(outputs[0][3], squared.min(axis=0))
