@@ -10,8 +10,9 @@ from lab.core.errors import InvalidValue
 from lab.modules.diffusion import PIPELINE, SamplingTrace
 from lab.viewer.app import ClientView, ModuleCatalog
 from lab.viewer.interactions import interactions_for
+from lab.core.pipeline import RunRecord
 from lab.viewer.interactions.diffusion import (SamplerScrubber, beside_offset, digit_frames, frame_caption,
-                                               frame_clouds, trajectory_segments)
+                                               frame_clouds, last_sample_params, trajectory_segments)
 
 TINY = {"iterations": 60, "hidden": 16, "layers": 1, "batch_size": 64}
 
@@ -41,6 +42,16 @@ def test_trajectories_join_consecutive_frames():
     assert segments.shape == (6, 2, 3)
     np.testing.assert_allclose(segments[0], [trace.x_t[0][0], trace.x_t[1][0]], rtol=1e-6)
     np.testing.assert_allclose(segments[-1], [trace.x_t[2][1], trace.x_t[3][1]], rtol=1e-6)
+
+
+def test_last_sample_params_are_those_of_the_last_successful_sample_run():
+    def record(step, status="ok", **params):
+        return RunRecord(step, params, 0, 0.1, {}, status)
+
+    assert last_sample_params([]) == {}
+    history = [record("sample", steps=8, count=100), record("train_denoiser", iterations=5),
+               record("sample", "failed", steps=3, guidance_scale=2.0)]
+    assert last_sample_params(history) == {"steps": 8, "count": 100}
 
 
 def test_digit_frames_and_caption():
@@ -77,10 +88,13 @@ def test_scrubbing_points_and_resampling(view):
         part.resample()
     view.run_with("noise_schedule", {"timesteps": 100})
     view.run_with("train_denoiser", TINY)
-    view.run_with("sample", {"sampler": "ddim", "steps": 8, "count": 100})
+    view.run_with("sample", {"sampler": "euler", "steps": 8, "count": 100})
     view.refresh(force=True)
     trace = view.session.state["trace"]
     assert part.trace is trace and part.index == trace.frames - 1 == 8
+    # the folder's inputs show the run being scrubbed, and showing them did not re-sample
+    assert (part.sampler_choice.value, part.steps_input.value, part.guidance_input.value) == ("euler", 8, 0.0)
+    assert [r.step for r in view.session.history] == ["noise_schedule", "train_denoiser", "sample"]
     noisy, clean = part.clouds
     np.testing.assert_allclose(noisy[:, :2], view.session.state["generated"][:100], atol=1e-5)
     assert clean[:, 0].min() > noisy[:, 0].min()  # beside, along +x
@@ -98,6 +112,8 @@ def test_scrubbing_points_and_resampling(view):
     part.resample(steps=4)
     view.refresh(force=True)
     assert view.session.state["trace"].steps == 4 and part.trace.steps == 4 and part.index == 4
+    # only the step count changed: the sampler shown and the last run's sample count are kept
+    assert view.session.history[-1].params["sampler"] == "euler" and len(view.session.state["generated"]) == 100
     # guidance on an unconditional model: a clear error, the old result kept
     part.resample(guidance_scale=2.0)
     view.refresh(force=True)

@@ -6,7 +6,9 @@
   the trajectories of a few samples from the noise to the current frame as line segments. Digits:
   two image grids (x_t and x0_hat) in the Images tab.
 * **Sample again** with the sampler, step count and guidance scale chosen here: changing the
-  guidance scale or the step count re-runs the ``sample`` step (the result and the scrubber update).
+  guidance scale or the step count re-runs the ``sample`` step (the result and the scrubber update);
+  its other controls (count, eta, label) stay those of the last run. The inputs show the controls
+  of the run being scrubbed.
   The schedule and its SNR are plotted by the generic drawing (the ``schedule_plot`` and ``snr_plot``
   curves); the scrubber says which noise level (sigma = sqrt((1 - abar) / abar)) a frame is at.
 
@@ -15,7 +17,7 @@ The math is in the typed functions below (tested directly); the class only wires
 
 from __future__ import annotations
 
-from typing import Any, Mapping
+from typing import Any, Mapping, Sequence
 
 import numpy as np
 
@@ -36,6 +38,14 @@ BESIDE = 1.3
 # ----------------------------------------------------------------------------------------------------
 # Pure math
 # ----------------------------------------------------------------------------------------------------
+def last_sample_params(history: Sequence[Any]) -> dict[str, Any]:
+    """The controls of the last successful ``sample`` run in a session's ``history`` ({} when none)."""
+    for record in reversed(history):
+        if record.step == "sample" and record.status == "ok":
+            return dict(record.params)
+    return {}
+
+
 def frame_index(trace: SamplingTrace, index: int) -> int:
     """``index`` checked against the trace's frames (``InvalidValue`` naming the range)."""
     if not 0 <= int(index) < trace.frames:
@@ -119,21 +129,22 @@ class SamplerScrubber(Interaction):
         self.guidance_input = self.track(gui.add_slider("guidance scale", 0.0, 10.0, 0.5, 0.0,
                                                         hint="classifier-free guidance w (conditional models)"))
         self.sample_button = self.track(gui.add_button("Sample again"))
+        self.syncing = False  # set while update() shows the run's controls (viser calls on_update for those too)
         self.slider.on_update(ctx.guarded(lambda _: self.show_frame(int(self.slider.value))))
         self.sample_button.on_click(ctx.guarded(lambda _: self.resample()))
-        self.steps_input.on_update(ctx.guarded(lambda _: self.resample()))
-        self.guidance_input.on_update(ctx.guarded(lambda _: self.resample()))
+        self.steps_input.on_update(ctx.guarded(lambda _: None if self.syncing else self.resample()))
+        self.guidance_input.on_update(ctx.guarded(lambda _: None if self.syncing else self.resample()))
         self.image_handles: list[Any] | None = None
 
     # --- actions (public: tests and scripts call them) -----------------------------------------------
     def resample(self, **controls: Any) -> None:
-        """Run ``sample`` with this folder's sampler, steps and guidance scale (``controls`` override them)."""
+        """Run ``sample`` again with this folder's sampler, steps and guidance scale (``controls`` override them);
+        its other controls (count, eta, label ...) stay those of the last ``sample`` run."""
         if "model" not in self.ctx.session.state:
             raise InvalidValue("model", "train the denoiser first (step train_denoiser)")
-        params = {"sampler": str(self.sampler_choice.value), "steps": int(self.steps_input.value)}
-        guidance = float(self.guidance_input.value)
-        if guidance or self.ctx.session.state["model"].conditional:
-            params["guidance_scale"] = guidance
+        params = {**last_sample_params(self.ctx.session.history), "sampler": str(self.sampler_choice.value),
+                  "steps": int(self.steps_input.value)}
+        params["guidance_scale"] = float(self.guidance_input.value)
         params.update(controls)
         self.ctx.run("sample", params)
 
@@ -161,10 +172,25 @@ class SamplerScrubber(Interaction):
             self._clear()
             self.status_md.content = "Run **sample** to scrub its steps."
             return
+        self._show_controls_of(self.trace)
         last = self.trace.frames - 1
         self.slider.max = max(last, 1)
         self.slider.value = last
         self.show_frame(last)
+
+    def _show_controls_of(self, trace: SamplingTrace) -> None:
+        """Set the sampler, steps and guidance inputs to those of the run shown (without re-sampling)."""
+        guidance = float(last_sample_params(self.ctx.session.history).get("guidance_scale", 0.0))
+        self.syncing = True
+        try:
+            if trace.sampler in self.sampler_choice.options:
+                self.sampler_choice.value = trace.sampler
+            self.steps_input.max = max(int(self.steps_input.max), int(trace.steps))
+            self.steps_input.value = int(trace.steps)
+            self.guidance_input.max = max(float(self.guidance_input.max), guidance)
+            self.guidance_input.value = guidance
+        finally:
+            self.syncing = False
 
     def bounds(self) -> np.ndarray | None:
         if self.clouds is None:
@@ -222,5 +248,5 @@ class SamplerScrubber(Interaction):
 
 INTERACTIONS = [SamplerScrubber]
 
-__all__ = ["INTERACTIONS", "SamplerScrubber", "frame_index", "frame_clouds", "trajectory_segments", "digit_frames",
-           "frame_caption", "beside_offset", "as_3d"]
+__all__ = ["INTERACTIONS", "SamplerScrubber", "last_sample_params", "frame_index", "frame_clouds",
+           "trajectory_segments", "digit_frames", "frame_caption", "beside_offset", "as_3d"]
