@@ -16,3 +16,38 @@ if str(FIXTURES) not in sys.path:  # the toy lesson's module "toy_lesson_pipelin
 def submission(*parts: str) -> str:
     """The text of a fixture submission, e.g. ``submission("toy", "solution.py")``."""
     return SUBMISSIONS.joinpath(*parts).read_text(encoding="utf-8")
+
+
+def failed(report) -> dict[str, str]:
+    """The failed tests of a grade report, name -> output."""
+    return {t.name: t.output for t in report.tests if t.status == "failed"}
+
+
+def hint_lines(output: str) -> list[str]:
+    return [line for line in output.splitlines() if line.startswith("Hint: ")]
+
+
+def graded_once(lesson, folder: str, seed: int):
+    """``report(name)``: fixture ``submissions/<folder>/<name>`` graded under ``seed``, once per ``graded_once``."""
+    from lab.lessons.grader import grade
+
+    reports = {}
+
+    def report(name: str):
+        if name not in reports:
+            reports[name] = grade(lesson, submission(folder, name), seed=seed)
+        return reports[name]
+
+    return report
+
+
+def assert_every_failure_names_its_mistake(report, hints: dict[str, str], name: str) -> None:
+    """Every check fixture ``name`` fails carries its hint ``hints[name]`` and no other fixture's."""
+    lost = failed(report)
+    assert lost
+    for check, output in lost.items():
+        found = hint_lines(output)
+        assert any(hints[name] in line for line in found), f"{check}: {output}"
+        for other, hint in hints.items():
+            if other != name:
+                assert not any(hint in line for line in found), f"{check} got the hint of {other}"

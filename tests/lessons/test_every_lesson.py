@@ -2,7 +2,7 @@
 the starter scores zero with a message on every test, and at least three plausible wrong
 implementations, kept under tests/fixtures/submissions/<lesson name>/wrong_*.py, each lose the
 points of exactly the checks their docstring lists under "Fails exactly these checks", with a
-message that says what was expected.
+message that says what was expected and a hint that says what to fix.
 """
 
 from __future__ import annotations
@@ -75,3 +75,4 @@ def test_wrong_implementation_loses_exactly_its_checks(lessons, folder, fixture)
     assert report.score == lesson.points - sum(t.max_score for t in lost.values())
     for test in lost.values():
         assert "Failed:" in test.output and ("Expected:" in test.output or "the reference gets" in test.output)
+        assert "\nHint: " in test.output, f"{test.name}: no hint says what to fix (a detector or mistakes.py)"

@@ -1,23 +1,40 @@
 """lessons/04-sfm beyond the generic checks of test_every_lesson.py: a student's own correct solution
 scores full marks (and how long grading takes), and the messages the wrong implementations get say
-what to fix.
+what to fix: every check a wrong fixture fails carries the hint of its mistake (lessons/04-sfm/mistakes.py
+and the hints of tasks.toml), and no other mistake's.
 
 Seeds are fixed here (``seed=``) so the tests are reproducible; graded for real, every run draws
-fresh hidden seeds.
+fresh hidden seeds. Each fixture is graded once per module (:func:`graded`).
 """
 
 from __future__ import annotations
 
 import time
 
+import numpy as np
 import pytest
 
 from lab.lessons.format import load_lesson
 from lab.lessons.grader import grade
+from lab.modules import sfm_basics
 
-from lesson_helpers import REPO, submission
+from lesson_helpers import (REPO, SUBMISSIONS, assert_every_failure_names_its_mistake, failed, graded_once,
+                            submission)
 
 SEED = 20240917
+WRONG = sorted(p.name for p in (SUBMISSIONS / "sfm").glob("wrong_*.py"))
+
+#: The hint (a part of its ``say`` in tasks.toml) every failed check of each wrong fixture must carry.
+HINTS = {
+    "wrong_no_normalization.py": "your poses are those of the DLT solved without Hartley's normalization",
+    "wrong_no_orthonormalization.py": "your R is P[:, :3] / mean(S), which with noise is no rotation",
+    "wrong_sign_from_last_entry.py": "the cameras with t_z < 0 come out as -[R | t]",
+    "wrong_sparsity_missing_points.py": "your pattern marks each observation's 6 camera columns only",
+    "wrong_sparsity_point_offset.py": "your point blocks start at column 3 p_i",
+    "wrong_sparsity_u_rows_only.py": "your pattern marks only row 2 i (the u residual) of each observation",
+    "wrong_triangulation_two_views.py": "your points are triangulated from the first two cameras that see them only",
+    "wrong_triangulation_without_K.py": "your projection matrices are [R_v | t_v] without K",
+}
 
 
 @pytest.fixture(scope="module")
@@ -25,8 +42,10 @@ def sfm_lesson():
     return load_lesson(REPO / "lessons" / "04-sfm")
 
 
-def failed(report) -> dict[str, str]:
-    return {t.name: t.output for t in report.tests if t.status == "failed"}
+@pytest.fixture(scope="module")
+def graded(sfm_lesson):
+    """``graded(name)``: the report of fixture ``name`` under SEED, graded once per module."""
+    return graded_once(sfm_lesson, "sfm", SEED)
 
 
 def test_the_lesson_uses_the_teaching_pipeline(sfm_lesson):
@@ -45,8 +64,8 @@ def test_a_student_solution_scores_full_marks_and_grading_time_is_reported(sfm_l
     assert report.score == 30.0, failed(report)
 
 
-def test_a_rotation_not_projected_onto_so3_is_told(sfm_lesson):
-    report = grade(sfm_lesson, submission("sfm", "wrong_no_orthonormalization.py"), seed=SEED)
+def test_a_rotation_not_projected_onto_so3_is_told(graded):
+    report = graded("wrong_no_orthonormalization.py")
     lost = failed(report)
     rotation = lost["Linear PnP: noisy data: every R is a rotation (R^T R = I, det R = +1)"]
     assert "metric orthonormality_linear after running the pipeline to refine_poses on your poses_linear" in rotation
@@ -54,8 +73,8 @@ def test_a_rotation_not_projected_onto_so3_is_told(sfm_lesson):
     assert report.score == 26.0  # the refinement starts from the nearest rotation: the rest is right
 
 
-def test_the_sign_taken_from_the_last_entry_puts_points_behind_cameras(sfm_lesson):
-    report = grade(sfm_lesson, submission("sfm", "wrong_sign_from_last_entry.py"), seed=SEED)
+def test_the_sign_taken_from_the_last_entry_puts_points_behind_cameras(graded):
+    report = graded("wrong_sign_from_last_entry.py")
     lost = failed(report)
     exact = lost["Linear PnP: exact data: the true poses [R | t]"]
     assert "Expected:\n[[" in exact and "Got:\n[[" in exact
@@ -64,8 +83,8 @@ def test_the_sign_taken_from_the_last_entry_puts_points_behind_cameras(sfm_lesso
     assert not any(name.startswith("Linear triangulation") or name.startswith("Sparsity") for name in lost)
 
 
-def test_the_unnormalized_pnp_is_recognised_on_noisy_data_only(sfm_lesson):
-    report = grade(sfm_lesson, submission("sfm", "wrong_no_normalization.py"), seed=SEED)
+def test_the_unnormalized_pnp_is_recognised_on_noisy_data_only(graded):
+    report = graded("wrong_no_normalization.py")
     lost = failed(report)
     assert "Linear PnP: exact data: the true poses [R | t]" not in lost
     refined = lost["Linear PnP: noisy data: the poses refined from yours (non-linear PnP) as close to the truth as "
@@ -74,16 +93,16 @@ def test_the_unnormalized_pnp_is_recognised_on_noisy_data_only(sfm_lesson):
     assert "so at most" in refined
 
 
-def test_two_view_triangulation_loses_only_the_noisy_comparison(sfm_lesson):
-    report = grade(sfm_lesson, submission("sfm", "wrong_triangulation_two_views.py"), seed=SEED)
+def test_two_view_triangulation_loses_only_the_noisy_comparison(graded):
+    report = graded("wrong_triangulation_two_views.py")
     (output,) = failed(report).values()
     assert output.startswith("Check: noisy data: the reference's points (DLT in pixels over every camera that sees "
                              "the point)\nData: 60 points")
     assert "Failed: points_linear: largest difference" in output
 
 
-def test_a_pattern_without_point_blocks_shows_in_the_bundle(sfm_lesson):
-    report = grade(sfm_lesson, submission("sfm", "wrong_sparsity_missing_points.py"), seed=SEED)
+def test_a_pattern_without_point_blocks_shows_in_the_bundle(graded):
+    report = graded("wrong_sparsity_missing_points.py")
     lost = failed(report)
     prefix = "Sparsity pattern of the bundle-adjustment Jacobian: noisy data: "
     missing = lost[prefix + "no entry the Jacobian has is left out (each row: its camera's 6 columns and its "
@@ -104,3 +123,26 @@ def test_a_pattern_with_every_entry_loses_the_comparisons_but_not_the_bundle(sfm
     assert set(failed(report)) == {prefix + "exact data: the reference's pattern, entry by entry",
                                    prefix + "noisy data: the reference's pattern, entry by entry",
                                    prefix + "noisy data: no entry marked that the Jacobian never has"}
+
+
+def test_every_wrong_fixture_has_its_hint():
+    assert set(HINTS) == set(WRONG)
+
+
+@pytest.mark.parametrize("name", WRONG)
+def test_every_check_a_mistake_fails_says_what_to_fix(graded, name):
+    """Each failed check names the mistake (same_as_mistake with lessons/04-sfm/mistakes.py), and no other."""
+    assert_every_failure_names_its_mistake(graded(name), HINTS, name)
+
+
+def test_the_mistakes_dlt_with_hartleys_normalization_is_the_labs(sfm_lesson):
+    """The PnP mistakes change one thing of the lab's own DLT: with every step kept it gives the reference."""
+    mistakes = sfm_lesson.mistakes
+    state = sfm_basics.synthetic(num_points=30, num_views=4, noise_px=1.0, map_noise=0.05, seed=3).state
+    inputs = (state["points3d"], state["observations"], state["K"])
+    reference = sfm_basics.estimate_poses_linear(*inputs)
+    rebuilt = mistakes["_poses_from"](mistakes["_dlt_matrices"](*inputs, hartley=True), project_onto_so3=True)
+    np.testing.assert_allclose(rebuilt, reference, rtol=0, atol=1e-10)
+    assert np.any(reference[:, 2, 3] < 0)  # a camera with the world origin behind it: the sign mistake shows
+    for mistake in ("pnp_without_normalization", "pnp_without_orthonormalization", "pnp_sign_from_last_entry"):
+        assert np.abs(mistakes[mistake](*inputs) - reference).max() > 1e-6, mistake

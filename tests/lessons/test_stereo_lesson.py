@@ -18,7 +18,7 @@ from lab.lessons.format import load_lesson
 from lab.lessons.grader import grade
 from lab.modules.stereo import cost_volume, left_right_check, winner_take_all
 
-from lesson_helpers import REPO, submission
+from lesson_helpers import REPO, failed, submission
 
 SEED = 20261122
 
@@ -29,10 +29,6 @@ LR = "Left-right consistency check"
 @pytest.fixture(scope="module")
 def stereo_lesson():
     return load_lesson(REPO / "lessons" / "03-stereo")
-
-
-def failed(report) -> dict[str, str]:
-    return {t.name: t.output for t in report.tests if t.status == "failed"}
 
 
 def test_the_lesson_grades_the_three_steps_of_block_matching(stereo_lesson):

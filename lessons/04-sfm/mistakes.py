@@ -1,0 +1,116 @@
+"""Recognisable wrong implementations of this lesson's steps (the lesson format's ``mistakes.py``).
+
+The grader runs one of these on a check's inputs when the student's result fails, and gives the
+hint of tasks.toml when the student's result is what the mistake computes. Each takes the step's
+parameters. Where the mistake is a change of input or of output it is the lab's own step
+(:mod:`lab.modules.sfm_basics`) with that change, so it is exact by construction; the two PnP
+mistakes inside the DLT share :func:`_dlt_matrices`, which with Hartley's normalization is the lab's
+own DLT (tests/lessons/test_sfm_lesson.py checks that it gives the reference's poses).
+"""
+
+import numpy as np
+
+from lab.core import Points2D
+from lab.geometry.camera import pixels_to_normalized
+from lab.geometry.homogeneous import hartley_normalization
+from lab.geometry.rotations import nearest_rotation
+from lab.modules import sfm_basics
+
+
+# --- task 1: linear PnP ---------------------------------------------------------------------------
+def _dlt_matrices(points3d, observations, K, *, hartley):
+    """``(V, 3, 4)``: every camera's DLT matrix ``P`` for normalized coordinates ``K^-1 x``, its sign
+    chosen so that the points it sees have positive depth (lesson.md, task 1, steps 1 to 4).
+
+    ``hartley=False`` solves the system on the coordinates as they are (``T2``, ``T3`` the identity).
+    """
+    world = np.asarray(points3d, dtype=np.float64)
+    matrices = []
+    for view in range(int(observations.view.max()) + 1):
+        seen = observations.view == view
+        X = world[observations.ids[seen]]
+        x = pixels_to_normalized(observations.xy[seen], K)
+        T3, X_n = hartley_normalization(X) if hartley else (np.eye(4), X)
+        T2, x_n = hartley_normalization(x) if hartley else (np.eye(3), x)
+        X_h = np.column_stack([X_n, np.ones(len(X_n))])
+        system = np.zeros((2 * len(X_h), 12))
+        system[0::2, 0:4], system[0::2, 8:12] = X_h, -x_n[:, [0]] * X_h  # [X~^T, 0, -x X~^T]
+        system[1::2, 4:8], system[1::2, 8:12] = X_h, -x_n[:, [1]] * X_h  # [0, X~^T, -y X~^T]
+        null_vector = np.linalg.svd(system)[2][-1]
+        P = np.linalg.solve(T2, null_vector.reshape(3, 4)) @ T3
+        depths = np.column_stack([X, np.ones(len(X))]) @ P[2]
+        matrices.append(-P if np.sign(depths).sum() < 0 else P)
+    return np.array(matrices)
+
+
+def _poses_from(matrices, *, project_onto_so3):
+    """``[R | t]`` from ``P = lambda [R | t]``: ``t = P[:, 3] / mean(S)``; ``R`` the nearest rotation to
+    ``P[:, :3]`` or, without ``project_onto_so3``, ``P[:, :3] / mean(S)`` (``U S W^T = svd(P[:, :3])``)."""
+    blocks = matrices[:, :, :3]
+    scale = np.linalg.svd(blocks, compute_uv=False).mean(axis=1)[:, None, None]
+    rotations = nearest_rotation(blocks) if project_onto_so3 else blocks / scale
+    return np.concatenate([rotations, matrices[:, :, 3:] / scale], axis=2)
+
+
+def pnp_without_normalization(points3d, observations, K):
+    """The DLT solved without Hartley's normalization of either point set; the rest as the lesson says."""
+    return _poses_from(_dlt_matrices(points3d, observations, K, hartley=False), project_onto_so3=True)
+
+
+def pnp_without_orthonormalization(points3d, observations, K):
+    """``R = P[:, :3] / mean(S)``: the block divided by its scale, not projected onto SO(3)."""
+    return _poses_from(_dlt_matrices(points3d, observations, K, hartley=True), project_onto_so3=False)
+
+
+def pnp_sign_from_last_entry(points3d, observations, K):
+    """``P`` scaled so that ``P[2, 3] = 1`` instead of signed by the depths, then ``R = U W^T``.
+
+    ``P[2, 3] = lambda t_z``: where ``t_z < 0`` (the world origin behind the camera) this negates
+    the right ``P``, whose block's nearest orthogonal matrix is then ``-R``: that camera comes out
+    as ``-[R | t]``, the others as the reference's.
+    """
+    poses = sfm_basics.estimate_poses_linear(points3d, observations, K)
+    return poses * np.where(poses[:, 2, 3] < 0, -1.0, 1.0)[:, None, None]
+
+
+# --- task 2: linear triangulation ------------------------------------------------------------------
+def triangulation_from_two_views(observations, poses, K):
+    """Each point from the first two observations of it (in the order of ``observations``), not from all."""
+    order = np.argsort(observations.ids, kind="stable")
+    ids = observations.ids[order]
+    starts = np.searchsorted(ids, ids)  # where each point's run of observations begins
+    keep = np.zeros(len(ids), dtype=bool)
+    keep[order[np.arange(len(ids)) - starts < 2]] = True
+    first_two = Points2D(observations.xy[keep], view=observations.view[keep], ids=observations.ids[keep],
+                         image=observations.image)
+    return sfm_basics.triangulate_points_linear(first_two, poses, K)
+
+
+def triangulation_without_K(observations, poses, K):
+    """``P_v = [R_v | t_v]`` with the pixels as they are: the lab's triangulation given ``K = I``."""
+    return sfm_basics.triangulate_points_linear(observations, poses, np.eye(3))
+
+
+# --- task 3: the sparsity pattern --------------------------------------------------------------------
+def sparsity_without_point_blocks(camera_indices, point_indices, num_cameras, num_points):
+    """Each observation's camera columns marked, its point's 3 columns not."""
+    pattern = sfm_basics.jacobian_sparsity(camera_indices, point_indices, num_cameras, num_points)
+    pattern[:, sfm_basics.CAMERA_PARAMS * num_cameras:] = False
+    return pattern
+
+
+def sparsity_points_without_camera_offset(camera_indices, point_indices, num_cameras, num_points):
+    """Point ``p``'s columns at ``3 p .. 3 p + 2``, over the camera blocks: the cameras' ``6 V`` columns not skipped."""
+    pattern = sfm_basics.jacobian_sparsity(camera_indices, point_indices, num_cameras, num_points)
+    cameras = sfm_basics.CAMERA_PARAMS * num_cameras
+    shifted = pattern.copy()
+    shifted[:, cameras:] = False
+    shifted[:, :3 * num_points] |= pattern[:, cameras:]
+    return shifted
+
+
+def sparsity_u_rows_only(camera_indices, point_indices, num_cameras, num_points):
+    """Only row ``2 i`` (the u residual) of each observation marked; rows ``2 i + 1`` empty."""
+    pattern = sfm_basics.jacobian_sparsity(camera_indices, point_indices, num_cameras, num_points)
+    pattern[1::2] = False
+    return pattern
