@@ -23,8 +23,9 @@ pycolmap uses every core it finds; ours mostly one (NumPy's BLAS may use more).
 
 The last line is ``RESULT {json}`` with ``registered_ours``, ``registered_colmap``, ``views``,
 ``reproj_px_ours``, ``reproj_px_colmap``, ``rot_err_deg_ours``, ``rot_err_deg_colmap``,
-``center_err_rel_ours``, ``center_err_rel_colmap``, ``time_ratio`` and extras (track lengths,
-times, maxima, points).
+``center_err_rel_ours``, ``center_err_rel_colmap``, ``time_ratio``, ``mean_track_length_ours``,
+``mean_track_length_colmap`` (observations per 3D point), ``points_ours``, ``points_colmap`` and
+extras (times, maxima).
 """
 
 from __future__ import annotations
@@ -151,6 +152,8 @@ def main() -> None:
             ("centre error, mean (% of scene)", "center_error_rel", "{:.4%}"),
             ("centre error, max (% of scene)", "center_error_max_rel", "{:.4%}"),
             ("wall time (s)", "seconds", "{:.1f}")]
+    print(f"tracks: ours {ours['track_length']:.2f} images per point over {ours['points']} points, COLMAP "
+          f"{colmap['track_length']:.2f} over {colmap['points']} points")
     print(f"{'':34s} {'ours':>12s} {'COLMAP':>12s} {'ratio':>8s}")
     for label, key, fmt in rows:
         a, b = ours[key], colmap[key]
@@ -162,9 +165,10 @@ def main() -> None:
         "rot_err_deg_ours": ours["rotation_error_deg"], "rot_err_deg_colmap": colmap["rotation_error_deg"],
         "center_err_rel_ours": ours["center_error_rel"], "center_err_rel_colmap": colmap["center_error_rel"],
         "time_ratio": ours["seconds"] / colmap["seconds"],
+        "mean_track_length_ours": ours["track_length"], "mean_track_length_colmap": colmap["track_length"],
+        "points_ours": ours["points"], "points_colmap": colmap["points"],
         # extras
         "track_length_ours": ours["track_length"], "track_length_colmap": colmap["track_length"],
-        "points_ours": ours["points"], "points_colmap": colmap["points"],
         "rot_err_max_deg_ours": ours["rotation_error_max_deg"],
         "rot_err_max_deg_colmap": colmap["rotation_error_max_deg"],
         "center_err_max_rel_ours": ours["center_error_max_rel"],

@@ -9,13 +9,16 @@ The classical incremental pipeline (Schönberger and Frahm, "Structure-from-Moti
 2. :func:`verify_pairs` - geometric verification: F by RANSAC, E, the relative pose by the
    cheirality test (the epipolar module's steps again); the pairs that survive form the view graph,
    each with its inliers and the median triangulation angle of its matches.
-3. :func:`build_tracks` - the verified matches joined into tracks (connected components).
+3. :func:`build_tracks` - the verified matches joined into tracks (connected components; one that
+   sees an image twice is split into consistent tracks, not dropped).
 4. :func:`choose_initial_pair` - many inliers and a wide enough triangulation angle.
 5. :func:`initialize_pose` - the pair's relative pose from E with the cheirality test.
 6. :func:`triangulate_initial` and :func:`refine_initial_points` - linear (DLT) then non-linear
-   triangulation of the pair's tracks (H&Z chapter 12).
+   triangulation of the pair's tracks (H&Z chapter 12); like COLMAP, tracks seen in only two
+   images are not triangulated (``ignore_two_view_tracks``).
 7. :func:`reconstruct_incrementally` - a generator step: register the next image (linear PnP in
-   RANSAC, then non-linear PnP; H&Z chapter 7), triangulate the tracks it completes, bundle adjust;
+   RANSAC, then non-linear PnP; H&Z chapter 7), triangulate the tracks it completes, bundle adjust,
+   and continue, complete and merge tracks as COLMAP's incremental triangulator does (section 4.5);
    it yields the growing reconstruction after every registration and the cost during adjustment.
 8. :func:`filter_points` - drop observations with a large reprojection error and points with a
    small triangulation angle.
@@ -43,6 +46,8 @@ State names (float64 unless said; V views, N keypoints, T tracks, P points):
     initial_*           the two-view model: poses (V, 3, 4), registered (V,) bool, points (P, 3), point_tracks (P,)
     poses, registered, points, point_tracks, observed
                         the incremental model; ``observed`` (N,) bool: keypoints still used as observations
+    model_track_of      (N,) int          the track of each keypoint after the incremental step continued,
+                                          completed and merged tracks (``point_tracks`` and later steps use it)
     filtered_points, filtered_point_tracks, filtered_observed   after filtering
     adjusted_poses, adjusted_K, adjusted_points, point_errors     after the final bundle adjustment
     cameras             Cameras           the registered cameras so far (``views``: their images)
@@ -152,7 +157,8 @@ class _Model:
     observed: np.ndarray  # (N,) bool
 
     def point_of_track(self, num_tracks: int) -> np.ndarray:
-        out = np.full(num_tracks, -1, dtype=np.int64)
+        size = max(num_tracks, int(self.point_tracks.max()) + 1 if len(self.point_tracks) else 0)
+        out = np.full(size, -1, dtype=np.int64)
         out[self.point_tracks] = np.arange(len(self.point_tracks))
         return out
 
@@ -214,7 +220,7 @@ class Features:
     keypoints_min: int = metric("fewest keypoints in one image")
 
 
-def detect_all_features(images: ImageSet, *, max_features: Annotated[int, Range(0, 50000)] = 2000,
+def detect_all_features(images: ImageSet, *, max_features: Annotated[int, Range(0, 50000)] = 8192,
                         contrast_threshold: Annotated[float, Range(0.001, 0.5)] = 0.02) -> Features:
     """SIFT keypoints and descriptors in every image (the epipolar module's ``detect_features``).
 
@@ -427,20 +433,71 @@ class Tracks:
     warnings: tuple[str, ...]
     tracks: int = metric("tracks (points seen in two or more images)")
     mean_track_length: float = metric("images per track, on average")
-    inconsistent_tracks: int = metric("tracks dropped because they see one image twice")
+    inconsistent_tracks: int = metric("components that saw one image twice (split into consistent tracks)")
+    split_tracks: int = metric("consistent tracks kept from the inconsistent components")
+    cut_matches: int = metric("matches cut to split the inconsistent components")
+    dropped_keypoints: int = metric("keypoints of inconsistent components left in no track")
 
 
-def build_tracks(keypoints: Points2D, inlier_matches: np.ndarray) -> Tracks:
-    """Join the verified matches into tracks: the connected components of the match graph.
+def unit_descriptors(descriptors: np.ndarray) -> np.ndarray:
+    """Descriptors scaled to unit length ``(N, D)`` float64 (SIFT's L2 normalization; zero rows stay zero)."""
+    d = np.asarray(descriptors, dtype=np.float64)
+    return d / np.maximum(np.linalg.norm(d, axis=1, keepdims=True), 1e-12)
+
+
+def split_inconsistent(edges: np.ndarray, view: np.ndarray, order: np.ndarray | None = None) -> np.ndarray:
+    """Cut an inconsistent match graph into consistent tracks: a union-find that never joins two sets sharing a view.
+
+    ``edges`` ``(E, 2)`` keypoint indices (local, ``0 .. n-1``), ``view`` ``(n,)`` the image of each
+    keypoint, ``order`` the order in which the edges are tried (best first, e.g. by descriptor
+    distance; default: as given). An edge whose two sets already see a common image is cut: it is
+    the one that would put two keypoints of one image into one track. Every consistent part of the
+    component survives (a plain chain through the component keeps all its edges); only the
+    conflicting, weakest edges go. Returns ``(n,)`` labels ``0 .. n-1`` (the root of each set).
+
+    This sequential loop runs on the keypoints of inconsistent components only (a few hundred
+    edges). COLMAP reaches the same end by never adding a second observation of one image to a
+    track (``IncrementalTriangulator``); Moulon and Monasse build tracks with the same union-find
+    but drop a track that sees an image twice (what :func:`build_tracks` did before).
+
+    Reference: Schönberger and Frahm, "Structure-from-Motion Revisited", CVPR 2016, section 4.5;
+    Moulon and Monasse, "Unordered feature tracking made fast and easy", CVMP 2012.
+    """
+    n = len(view)
+    parent = list(range(n))
+    seen = [1 << int(v) for v in view]  # views of each set as a bit mask (any number of views)
+    edges = np.asarray(edges, dtype=np.int64).reshape(-1, 2)
+    order = np.arange(len(edges)) if order is None else np.asarray(order)
+
+    def find(i: int) -> int:
+        while parent[i] != i:
+            parent[i] = parent[parent[i]]
+            i = parent[i]
+        return i
+
+    for a, b in edges[order].tolist():
+        ra, rb = find(a), find(b)
+        if ra == rb or seen[ra] & seen[rb]:
+            continue
+        parent[rb] = ra
+        seen[ra] |= seen[rb]
+    return np.array([find(i) for i in range(n)], dtype=np.int64)
+
+
+def build_tracks(keypoints: Points2D, inlier_matches: np.ndarray, descriptors: np.ndarray | None = None) -> Tracks:
+    """Join the verified matches into tracks: the connected components of the match graph, inconsistent ones split.
 
     Nodes are keypoints, edges the inlier matches; a component is one 3D point seen in several
     images (union-find, here ``scipy.sparse.csgraph.connected_components``). A component with two
-    keypoints in one image is inconsistent (a wrong match somewhere) and dropped, as COLMAP does.
+    keypoints in one image is inconsistent (a wrong match somewhere); it is not dropped but split
+    (:func:`split_inconsistent`): its edges are re-joined best first (smallest descriptor distance
+    when ``descriptors`` are given) and an edge that would make a track see one image twice is cut,
+    so the consistent part of the component is kept.
 
     Returns ``track_of`` ``(N,)`` int, the track of each keypoint (-1: none), tracks numbered 0 ..
 
-    Reference: Schönberger and Frahm (2016), section 3.1 (scene graph); Snavely et al., "Photo
-    tourism" (2006), section 4.1.
+    Reference: Schönberger and Frahm (2016), sections 3.1 (scene graph) and 4.5 (a track sees an
+    image once); Snavely et al., "Photo tourism" (2006), section 4.1.
     """
     import scipy.sparse
     from scipy.sparse.csgraph import connected_components
@@ -450,25 +507,49 @@ def build_tracks(keypoints: Points2D, inlier_matches: np.ndarray) -> Tracks:
     n = len(keypoints)
     track_of = np.full(n, -1, dtype=np.int64)
     if not len(m):
-        return Tracks(track_of, ("no verified matches: no tracks",), 0, 0.0, 0)
+        return Tracks(track_of, ("no verified matches: no tracks",), 0, 0.0, 0, 0, 0, 0)
+    if descriptors is not None:
+        descriptors = np.asarray(descriptors)
+        if descriptors.ndim != 2 or len(descriptors) != n:
+            raise InvalidValue("descriptors", f"expected one row per keypoint ({n}), got {descriptors.shape}")
     graph = scipy.sparse.coo_matrix((np.ones(len(m)), (m[:, 2], m[:, 3])), shape=(n, n))
     _, labels = connected_components(graph, directed=False)
     sizes = np.bincount(labels)
     candidate = sizes[labels] >= 2
     # a component is consistent when its keypoints lie in distinct views
-    key = labels.astype(np.int64) * (int(keypoints.view.max()) + 1) + keypoints.view
+    stride = int(keypoints.view.max()) + 1
+    key = labels.astype(np.int64) * stride + keypoints.view
     distinct = np.unique(key[candidate])
-    views_per_label = np.bincount(distinct // (int(keypoints.view.max()) + 1), minlength=len(sizes))
-    consistent = candidate & (views_per_label[labels] == sizes[labels])
-    inconsistent = int(len(np.unique(labels[candidate & ~consistent])))
-    kept = np.unique(labels[consistent])
-    renumber = np.full(len(sizes), -1, dtype=np.int64)
-    renumber[kept] = np.arange(len(kept))
-    track_of[consistent] = renumber[labels[consistent]]
+    views_per_label = np.bincount(distinct // stride, minlength=len(sizes))
+    bad_label = (sizes >= 2) & (views_per_label < sizes)
+    consistent = candidate & ~bad_label[labels]
+    labels = labels.astype(np.int64)
+    inconsistent = int(bad_label.sum())
+    split, cut, dropped = 0, 0, 0
+    if inconsistent:
+        members = np.flatnonzero(bad_label[labels])
+        local = np.full(n, -1, dtype=np.int64)
+        local[members] = np.arange(len(members))
+        edges = m[bad_label[labels[m[:, 2]]]][:, 2:]
+        order = None
+        if descriptors is not None:
+            unit = unit_descriptors(descriptors)
+            order = np.argsort(np.linalg.norm(unit[edges[:, 0]] - unit[edges[:, 1]], axis=1), kind="stable")
+        root = split_inconsistent(local[edges], keypoints.view[members], order)
+        part = members[root]  # a keypoint index names each part, distinct from every component label
+        part_sizes = np.bincount(root, minlength=len(members))
+        keep = part_sizes[root] >= 2
+        labels[members] = len(sizes) + part  # new labels beyond the components'
+        consistent[members[keep]] = True
+        split = int(len(np.unique(root[keep])))
+        cut = int(np.sum(root[local[edges[:, 0]]] != root[local[edges[:, 1]]]))
+        dropped = int(np.sum(~keep))
+    kept, renumbered = np.unique(labels[consistent], return_inverse=True)
+    track_of[consistent] = renumbered.reshape(-1)
     count = len(kept)
     mean = float(consistent.sum() / count) if count else 0.0
     warnings = () if count else ("no consistent tracks",)
-    return Tracks(track_of, warnings, count, mean, inconsistent)
+    return Tracks(track_of, warnings, count, mean, inconsistent, split, cut, dropped)
 
 
 # ----------------------------------------------------------------------------------------------------
@@ -589,11 +670,23 @@ def _pair_observations(keypoints: Points2D, track_of: np.ndarray, a: int, b: int
     return common, in_a[ia], in_b[ib]
 
 
-def _track_of(value: Any, keypoints: Points2D) -> np.ndarray:
+def _track_of(value: Any, keypoints: Points2D, name: str = "track_of") -> np.ndarray:
     track_of = np.asarray(value)
     if track_of.shape != (len(keypoints),) or not np.issubdtype(track_of.dtype, np.integer):
-        raise InvalidValue("track_of", f"expected ({len(keypoints)},) integer track ids, got {track_of.shape}")
+        raise InvalidValue(name, f"expected ({len(keypoints)},) integer track ids, got {track_of.shape}")
     return track_of.astype(np.int64)
+
+
+def _track_lengths(track_of: np.ndarray) -> np.ndarray:
+    """Keypoints (images) in each track ``(T,)``."""
+    return np.bincount(track_of[track_of >= 0], minlength=int(track_of.max()) + 1 if len(track_of) else 0)
+
+
+def _model_tracks(track_of: Any, model_track_of: Any, keypoints: Points2D) -> np.ndarray:
+    """The incremental model's tracks when given, else ``build_tracks``' (both checked)."""
+    if model_track_of is None:
+        return _track_of(track_of, keypoints)
+    return _track_of(model_track_of, keypoints, "model_track_of")
 
 
 @dataclass(frozen=True)
@@ -607,19 +700,25 @@ class InitialPoints:
     dropped_behind: int = metric("points behind a camera, dropped")
     dropped_angle: int = metric("points with a too small triangulation angle, dropped")
     reprojection_rms_px: float = metric("RMS reprojection error of the DLT points", unit="px")
+    ignored_two_view: int = metric("tracks seen by the two initial images only, not triangulated")
 
 
 def triangulate_initial(keypoints: Points2D, track_of: np.ndarray, K: np.ndarray, initial_pair: np.ndarray,
                         initial_pose: np.ndarray, *, min_angle_deg: Annotated[float, Range(0.0, 30.0)] = 1.0,
-                        ) -> InitialPoints:
+                        ignore_two_view_tracks: bool = True) -> InitialPoints:
     """Linear (DLT) triangulation of the tracks seen in both initial views (``triangulate_dlt``).
 
     ``P1 = K1 [I | 0]``, ``P2 = K2 [R | t]``; each point is the null vector of its ``4 x 4`` DLT
     system. Points behind either camera (cheirality) or whose two rays meet at less than
-    ``min_angle_deg`` (badly conditioned depth) are dropped.
+    ``min_angle_deg`` (badly conditioned depth) are dropped. A track with no keypoint beyond the
+    two images (a two-view track) is skipped when ``ignore_two_view_tracks``, as COLMAP's
+    triangulator does by default: its point could never be checked by a third view nor help
+    register one.
 
     Args:
         min_angle_deg: smallest angle between a point's two rays.
+        ignore_two_view_tracks: do not triangulate tracks of two keypoints (COLMAP's
+            ``ignore_two_view_tracks``, on by default there too).
 
     Returns ``initial_points_dlt`` ``(P, 3)`` and their tracks ``initial_point_tracks`` ``(P,)``.
     Corresponds to ``cv2.triangulatePoints(P1, P2, x1.T, x2.T)``.
@@ -632,6 +731,11 @@ def triangulate_initial(keypoints: Points2D, track_of: np.ndarray, K: np.ndarray
     a, b = _initial(initial_pair, len(K))
     pose = np.asarray(initial_pose, dtype=np.float64).reshape(3, 4)
     tracks, ka, kb = _pair_observations(keypoints, track_of, a, b)
+    ignored = 0
+    if ignore_two_view_tracks:
+        longer = _track_lengths(track_of)[tracks] > 2
+        ignored = int(np.sum(~longer))
+        tracks, ka, kb = tracks[longer], ka[longer], kb[longer]
     if len(tracks) < PNP_MINIMUM:
         raise InvalidValue("track_of", f"images {a} and {b} share only {len(tracks)} tracks: choose another pair")
     P = np.stack([projection_matrix(K[a], np.eye(3), np.zeros(3)), projection_matrix(K[b], pose[:, :3], pose[:, 3])])
@@ -650,7 +754,7 @@ def triangulate_initial(keypoints: Points2D, track_of: np.ndarray, K: np.ndarray
     rms = float(np.sqrt(np.mean(np.sum(residual**2, axis=2)))) if keep.any() else 0.0
     warnings = () if keep.sum() >= 50 else (f"only {int(keep.sum())} points from the initial pair",)
     return InitialPoints(X[keep], tracks[keep], warnings, int(keep.sum()), int(np.sum(~front)),
-                         int(np.sum(front & ~wide)), rms)
+                         int(np.sum(front & ~wide)), rms, ignored)
 
 
 @dataclass(frozen=True)
@@ -732,6 +836,7 @@ class IncrementalModel:
     points: np.ndarray
     point_tracks: np.ndarray
     observed: np.ndarray
+    model_track_of: np.ndarray
     cameras: Cameras
     points3d: PointCloud
     observations: Points2D
@@ -740,6 +845,10 @@ class IncrementalModel:
     registered_images: int = metric("images registered (initial pair included)")
     points_total: int = metric("3D points")
     mean_track_length: float = metric("observations per point, on average")
+    observations_continued: int = metric("observations of existing points added by the registered images "
+                                         "(track continuation)")
+    observations_completed: int = metric("observations attached to existing points by track completion")
+    tracks_merged: int = metric("pairs of points merged into one (track merging)")
     pnp_rms_linear_px: float = metric("RMS reprojection error of the PnP inliers, linear PnP (DLT in RANSAC), "
                                       "mean over registrations", unit="px")
     pnp_rms_nonlinear_px: float = metric("the same after non-linear PnP", unit="px")
@@ -806,8 +915,10 @@ def _reject_outliers(model: _Model, K: np.ndarray, keypoints: Points2D, track_of
 
 
 def _triangulate_new(model: _Model, K: np.ndarray, keypoints: Points2D, track_of: np.ndarray, tried: np.ndarray, *,
-                     min_angle_deg: float, max_error_px: float) -> tuple[int, float, float]:
+                     min_angle_deg: float, max_error_px: float, min_track_length: int = 2) -> tuple[int, float, float]:
     """Triangulate the tracks with two or more registered observations and no point yet (DLT, then LM).
+
+    Only tracks of at least ``min_track_length`` keypoints (3: COLMAP's ``ignore_two_view_tracks``).
 
     Returns (new points, RMS before refinement, RMS after) over the new points' observations.
     """
@@ -818,7 +929,8 @@ def _triangulate_new(model: _Model, K: np.ndarray, keypoints: Points2D, track_of
     kp = np.flatnonzero(usable)
     kp = kp[~has_point[track_of[kp]]]
     counts = np.bincount(track_of[kp], minlength=num_tracks)
-    candidates = np.flatnonzero((counts >= 2) & (counts > tried))
+    lengths = np.bincount(track_of[track_of >= 0], minlength=num_tracks)
+    candidates = np.flatnonzero((counts >= 2) & (counts > tried) & (lengths >= min_track_length))
     if not len(candidates):
         return 0, 0.0, 0.0
     tried[candidates] = counts[candidates]
@@ -860,9 +972,249 @@ def _triangulate_new(model: _Model, K: np.ndarray, keypoints: Points2D, track_of
     return int(good.sum()), float(history[0]), float(history[-1])
 
 
-def _correspondences_2d3d(model: _Model, keypoints: Points2D, track_of: np.ndarray, view: int):
-    of_track = model.point_of_track(len(track_of) and int(track_of.max()) + 1)
-    kp = np.flatnonzero((keypoints.view == view) & (track_of >= 0) & model.observed)
+# --- COLMAP's incremental triangulator: continue, complete and merge tracks (Schönberger and Frahm 2016, 4.5) ---
+def _project(model: _Model, K: np.ndarray, views: np.ndarray, points: np.ndarray,
+             X: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """Pixels ``(n, 2)`` and depths ``(n,)`` of ``points`` (or of positions ``X``) in ``views``."""
+    X = model.points[points] if X is None else X
+    Xc = np.einsum("nij,nj->ni", model.poses[views, :, :3], X) + model.poses[views, :, 3]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        uv = np.einsum("nij,nj->ni", K[views], Xc / Xc[:, 2:3])[:, :2]
+    return uv, Xc[:, 2]
+
+
+def _continue_tracks(model: _Model, K: np.ndarray, keypoints: Points2D, track_of: np.ndarray, view: int, *,
+                     max_error_px: float) -> int:
+    """Track continuation: the new image's keypoints whose tracks already have a point become observations
+    when they reproject within ``max_error_px`` under its refined pose (PnP outliers that fit it come back).
+
+    Returns the observations the image adds. COLMAP's ``IncrementalTriangulator::Continue``.
+    """
+    kp, point = _correspondences_2d3d(model, keypoints, track_of, view, all_keypoints=True)
+    if not len(kp):
+        return 0
+    uv, depth = _project(model, K, np.full(len(kp), view), point)
+    good = (depth > 0) & (np.linalg.norm(uv - keypoints.xy[kp], axis=1) <= max_error_px)
+    model.observed[kp] = good
+    return int(good.sum())
+
+
+def _guided_candidates(model: _Model, K: np.ndarray, keypoints: Points2D, track_of: np.ndarray,
+                       unit: np.ndarray | None, trees: dict, sizes: np.ndarray, *, max_error_px: float,
+                       max_descriptor_distance: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Keypoints that may observe a point in a registered image where it has no observation yet.
+
+    Every point is projected into every registered image its track does not observe; the keypoints
+    within ``max_error_px`` of the projection (a k-d tree per image, ``scipy.spatial.cKDTree``)
+    whose unit descriptor lies within ``max_descriptor_distance`` of one of the point's observations
+    (compare COLMAP's matcher ``max_distance``) are candidates; without descriptors only a keypoint alone in
+    that radius is. This is the guided search of H&Z algorithm 11.4 step (v) with the projection
+    of the point as the search region: the correspondences the ratio test missed.
+
+    Returns ``(point, keypoint, error px)`` rows, several per point possible.
+    """
+    empty = (np.zeros(0, dtype=np.int64),) * 2 + (np.zeros(0),)
+    if not len(model.points):
+        return empty
+    kp, views, point = model.observations(keypoints, track_of)
+    V = len(model.registered)
+    seen = np.zeros((len(model.points), V), dtype=bool)
+    seen[point, views] = True
+    cams = np.flatnonzero(model.registered)
+    pp, column = np.nonzero(~seen[:, cams])
+    vv = cams[column]
+    uv, depth = _project(model, K, vv, pp)
+    inside = (depth > 0) & np.all(np.isfinite(uv), axis=1) & (uv[:, 0] >= -0.5) & (uv[:, 1] >= -0.5) \
+        & (uv[:, 0] <= sizes[vv, 0] - 0.5) & (uv[:, 1] <= sizes[vv, 1] - 0.5)
+    pp, vv, uv = pp[inside], vv[inside], uv[inside]
+    neighbours = 3 if unit is not None else 2
+    found_p, found_k, found_e = [], [], []
+    for v in np.unique(vv):
+        rows = np.flatnonzero(vv == v)
+        tree, index = trees[int(v)]
+        if tree.n == 0:
+            continue
+        distance, nearest = tree.query(uv[rows], k=neighbours, distance_upper_bound=max_error_px)
+        if unit is None:  # no descriptors: only an unambiguous keypoint
+            alone = np.isfinite(distance[:, 0]) & ~np.isfinite(distance[:, 1])
+            distance, nearest, rows = distance[alone, :1], nearest[alone, :1], rows[alone]
+        hit = np.isfinite(distance)
+        found_p.append(np.broadcast_to(pp[rows, None], hit.shape)[hit])
+        found_k.append(index[nearest[hit]])
+        found_e.append(distance[hit])
+    if not found_p:
+        return empty
+    cp, ck, ce = np.concatenate(found_p), np.concatenate(found_k), np.concatenate(found_e)
+    if unit is not None and len(cp):
+        # smallest descriptor distance from each candidate to the observations of its point
+        order = np.argsort(point, kind="stable")
+        obs_kp = kp[order]
+        counts = np.bincount(point, minlength=len(model.points))
+        starts = np.concatenate([[0], np.cumsum(counts)[:-1]])
+        n = counts[cp]
+        has = n > 0
+        cp, ck, ce, n = cp[has], ck[has], ce[has], n[has]
+        pair = np.repeat(np.arange(len(cp)), n)
+        offset = np.arange(len(pair)) - np.repeat(np.cumsum(n) - n, n)
+        distance = np.linalg.norm(unit[ck[pair]] - unit[obs_kp[starts[cp][pair] + offset]], axis=1)
+        best = np.minimum.reduceat(distance, np.cumsum(n) - n) if len(pair) else np.zeros(0)
+        close = best <= max_descriptor_distance
+        cp, ck, ce = cp[close], ck[close], ce[close]
+    return cp, ck, ce
+
+
+def _complete_tracks(model: _Model, keypoints: Points2D, track_of: np.ndarray,
+                     candidates: tuple[np.ndarray, np.ndarray, np.ndarray]) -> int:
+    """Track completion: attach to each point the free keypoints of :func:`_guided_candidates` (in place).
+
+    A keypoint is free when it observes no point. Each keypoint goes to the point it fits best and
+    each point takes at most one keypoint per image (the smallest error); the keypoint joins the
+    point's track (``track_of`` changes), and an unused keypoint the track had in that image leaves
+    it, so a track still sees each image once. Returns the observations added. COLMAP's
+    ``IncrementalTriangulator::Complete``.
+    """
+    cp, ck, ce = candidates
+    kp, _, point = model.observations(keypoints, track_of)
+    point_of = np.full(len(keypoints), -1, dtype=np.int64)
+    point_of[kp] = point
+    free = point_of[ck] < 0
+    cp, ck, ce = cp[free], ck[free], ce[free]
+    if not len(cp):
+        return 0
+    order = np.argsort(ce, kind="stable")
+    cp, ck = cp[order], ck[order]
+    _, first = np.unique(ck, return_index=True)
+    cp, ck = cp[np.sort(first)], ck[np.sort(first)]
+    V = len(model.registered)
+    slot = cp * V + keypoints.view[ck]
+    _, first = np.unique(slot, return_index=True)
+    cp, ck = cp[np.sort(first)], ck[np.sort(first)]
+    target = model.point_tracks[cp]
+    labelled = np.flatnonzero(track_of >= 0)
+    stale = labelled[np.isin(track_of[labelled] * V + keypoints.view[labelled], target * V + keypoints.view[ck])]
+    track_of[stale] = -1
+    track_of[ck] = target
+    model.observed[ck] = True
+    return len(ck)
+
+
+def _merge_tracks(model: _Model, K: np.ndarray, keypoints: Points2D, track_of: np.ndarray,
+                  candidates: tuple[np.ndarray, np.ndarray, np.ndarray], *, max_error_px: float) -> int:
+    """Track merging: two points whose projections land on each other's observations become one (in place).
+
+    A candidate of :func:`_guided_candidates` that already observes another point links the two.
+    They merge when their tracks see no image in common and every observation of both lies within
+    ``max_error_px`` of the merged point, the mean of the two weighted by their observation counts
+    (COLMAP's ``IncrementalTriangulator::Merge``). Each point takes part in at most one merge per
+    call (best first). Returns the merges made.
+    """
+    cp, ck, _ = candidates
+    kp, views, point = model.observations(keypoints, track_of)
+    point_of = np.full(len(keypoints), -1, dtype=np.int64)
+    point_of[kp] = point
+    other = point_of[ck]
+    linked = (other >= 0) & (other != cp)
+    if not linked.any():
+        return 0
+    pairs = np.unique(np.sort(np.column_stack([cp[linked], other[linked]]), axis=1), axis=0)
+    V = len(model.registered)
+    ta, tb = model.point_tracks[pairs[:, 0]], model.point_tracks[pairs[:, 1]]
+    involved, local = np.unique(np.concatenate([ta, tb]), return_inverse=True)
+    labelled = np.flatnonzero(np.isin(track_of, involved))
+    sees = np.zeros((len(involved), V), dtype=bool)
+    sees[np.searchsorted(involved, track_of[labelled]), keypoints.view[labelled]] = True
+    la, lb = local[:len(pairs)], local[len(pairs):]
+    pairs = pairs[~np.any(sees[la] & sees[lb], axis=1)]
+    if not len(pairs):
+        return 0
+    counts = np.bincount(point, minlength=len(model.points)).astype(np.float64)
+    na, nb = counts[pairs[:, 0]], counts[pairs[:, 1]]
+    merged = (na[:, None] * model.points[pairs[:, 0]] + nb[:, None] * model.points[pairs[:, 1]]) / (na + nb)[:, None]
+    # worst reprojection error of the merged point over the observations of both points
+    slot = np.full(len(model.points), -1, dtype=np.int64)
+    worst = np.zeros(len(pairs))
+    for side in (0, 1):
+        slot[:] = -1
+        slot[pairs[:, side]] = np.arange(len(pairs))
+        rows = np.flatnonzero(slot[point] >= 0)
+        uv, depth = _project(model, K, views[rows], point[rows], merged[slot[point[rows]]])
+        error = np.where(depth > 0, np.linalg.norm(uv - keypoints.xy[kp[rows]], axis=1), np.inf)
+        np.maximum.at(worst, slot[point[rows]], np.nan_to_num(error, nan=np.inf))
+    good = worst <= max_error_px
+    pairs, merged, worst = pairs[good], merged[good], worst[good]
+    if not len(pairs):
+        return 0
+    order = np.argsort(worst, kind="stable")
+    pairs, merged = pairs[order], merged[order]
+    sequence = pairs.reshape(-1)  # a point may merge once per call: keep pairs whose points appear first there
+    _, first = np.unique(sequence, return_index=True)
+    first_of = np.full(len(model.points), -1)
+    first_of[sequence[first]] = first
+    rank = 2 * np.arange(len(pairs))
+    alone = (first_of[pairs[:, 0]] == rank) & (first_of[pairs[:, 1]] == rank + 1)
+    pairs, merged = pairs[alone], merged[alone]
+    model.points[pairs[:, 0]] = merged
+    remap = np.arange(max(int(track_of.max()) + 1, 1))
+    remap[model.point_tracks[pairs[:, 1]]] = model.point_tracks[pairs[:, 0]]
+    labelled = track_of >= 0
+    track_of[labelled] = remap[track_of[labelled]]
+    keep = np.ones(len(model.points), dtype=bool)
+    keep[pairs[:, 1]] = False
+    model.points, model.point_tracks = model.points[keep], model.point_tracks[keep]
+    return len(pairs)
+
+
+def _complete_and_merge(model: _Model, K: np.ndarray, keypoints: Points2D, track_of: np.ndarray,
+                        unit: np.ndarray | None, trees: dict, sizes: np.ndarray, *, max_error_px: float,
+                        max_descriptor_distance: float, rounds: int = 1) -> tuple[int, int]:
+    """Complete, then merge tracks, ``rounds`` times or until nothing changes: ``(observations added, merges)``.
+
+    COLMAP's ``IncrementalTriangulator::CompleteAndMergeTracks``.
+    """
+    completed = merged = 0
+    for _ in range(rounds):
+        options = dict(max_error_px=max_error_px, max_descriptor_distance=max_descriptor_distance)
+        added = _complete_tracks(model, keypoints, track_of,
+                                 _guided_candidates(model, K, keypoints, track_of, unit, trees, sizes, **options))
+        joined = _merge_tracks(model, K, keypoints, track_of,
+                               _guided_candidates(model, K, keypoints, track_of, unit, trees, sizes, **options),
+                               max_error_px=max_error_px)
+        completed, merged = completed + added, merged + joined
+        if not added and not joined:
+            break
+    return completed, merged
+
+
+def _drop_two_view_points(model: _Model, track_of: np.ndarray, tried: np.ndarray) -> int:
+    """Drop the points whose tracks still have two keypoints after completion (in place); returns how many.
+
+    With completion on, a two-view track is triangulated on trial: completion may find it in a
+    third image (then it stays), else it goes, as COLMAP's ``ignore_two_view_tracks`` would never
+    have made it; it is tried again after the next registration.
+    """
+    short = _track_lengths(track_of)[model.point_tracks] < 3
+    if short.any():
+        tried[model.point_tracks[short]] = 0
+        model.points, model.point_tracks = model.points[~short], model.point_tracks[~short]
+    return int(short.sum())
+
+
+def _keypoint_trees(keypoints: Points2D, views: int) -> dict:
+    """One k-d tree per image over its keypoints, with their global indices: ``{view: (tree, index)}``."""
+    from scipy.spatial import cKDTree
+
+    trees = {}
+    for v in range(views):
+        index = np.flatnonzero(keypoints.view == v)
+        trees[v] = (cKDTree(keypoints.xy[index] if len(index) else np.zeros((0, 2))), np.append(index, -1))
+    return trees
+
+
+def _correspondences_2d3d(model: _Model, keypoints: Points2D, track_of: np.ndarray, view: int, *,
+                          all_keypoints: bool = False):
+    """``(keypoints, points)`` of ``view`` whose tracks have a point (the still-used ones, all if ``all_keypoints``)."""
+    of_track = model.point_of_track(max(len(track_of) and int(track_of.max()) + 1, 1))
+    kp = np.flatnonzero((keypoints.view == view) & (track_of >= 0) & (model.observed | all_keypoints))
     point = of_track[track_of[kp]] if len(kp) else np.zeros(0, dtype=np.int64)
     kp, point = kp[point >= 0], point[point >= 0]
     return kp, point
@@ -870,7 +1222,8 @@ def _correspondences_2d3d(model: _Model, keypoints: Points2D, track_of: np.ndarr
 
 def reconstruct_incrementally(images: ImageSet, keypoints: Points2D, track_of: np.ndarray, K: np.ndarray,
                               initial_pair: np.ndarray, initial_poses: np.ndarray, initial_registered: np.ndarray,
-                              initial_points: np.ndarray, initial_point_tracks: np.ndarray, *,
+                              initial_points: np.ndarray, initial_point_tracks: np.ndarray,
+                              descriptors: np.ndarray | None = None, *,
                               pnp_threshold_px: Annotated[float, Range(0.5, 50.0)] = 4.0,
                               min_correspondences: Annotated[int, Range(6, 10000)] = 20,
                               min_angle_deg: Annotated[float, Range(0.0, 30.0)] = 1.5,
@@ -878,6 +1231,10 @@ def reconstruct_incrementally(images: ImageSet, keypoints: Points2D, track_of: n
                               ba_loss: Literal["linear", "huber", "soft_l1", "cauchy", "arctan"] = "huber",
                               ba_iterations: Annotated[int, Range(0, 200)] = 5,
                               ba_growth: Annotated[float, Range(1.0, 10.0)] = 1.25,
+                              complete_tracks: bool = True,
+                              ignore_two_view_tracks: bool = True,
+                              complete_max_error_px: Annotated[float, Range(0.1, 50.0)] = 2.0,
+                              max_descriptor_distance: Annotated[float, Range(0.0, 2.0)] = 0.5,
                               rng: np.random.Generator,
                               ) -> Generator[Progress, None, IncrementalModel]:
     """Grow the two-view model one image at a time: register -> triangulate -> bundle adjust (a generator step).
@@ -900,6 +1257,28 @@ def reconstruct_incrementally(images: ImageSet, keypoints: Points2D, track_of: n
        the scale held; Triggs et al. 2000), then stop using observations whose error exceeds
        ``max_error_px``.
 
+    Tracks grow as in COLMAP's incremental triangulator (Schönberger and Frahm 2016, section 4.5;
+    ``IncrementalTriangulator`` in ``src/colmap/sfm/incremental_triangulator.cc``):
+
+    * **create** only points of three or more images when ``ignore_two_view_tracks`` (COLMAP's
+      default): a two-view point is never checked by a third image nor helps register one. With
+      completion on, a two-view track is triangulated on trial and kept only if completion finds
+      it in a third image (:func:`_drop_two_view_points`);
+    * **continue**: after registration, every keypoint of the new image whose track has a point
+      becomes an observation if it reprojects within ``complete_max_error_px`` under the refined
+      pose (PnP outliers that fit it come back);
+    * **complete**: each point is projected into every registered image its track does not see;
+      the keypoint nearest to the projection (within ``complete_max_error_px``, its descriptor
+      within ``max_descriptor_distance`` of one of the point's) joins the track. COLMAP follows the
+      correspondence graph here; the graph's gaps are the ratio test's, so the search is guided by
+      the projection (H&Z algorithm 11.4, step v);
+    * **merge**: when that keypoint already observes another point, the two points become one if
+      their tracks see no image in common and every observation of both reprojects within
+      ``complete_max_error_px`` of their weighted mean.
+
+    Completion and merging run after every registration and once more at the end; the tracks they
+    change are ``model_track_of`` (``track_of`` itself is ``build_tracks``' and stays as it was).
+
     Yields :class:`~lab.core.Progress` after each registration (``values``: the cameras and points
     so far) and at every bundle-adjustment iteration (``loss``: RMS reprojection error, px).
 
@@ -912,18 +1291,41 @@ def reconstruct_incrementally(images: ImageSet, keypoints: Points2D, track_of: n
         ba_iterations: most iterations of each bundle adjustment (0: none inside the loop).
         ba_growth: adjust when the number of registered images has grown by this factor since the
             last adjustment (1: after every registration; COLMAP's ``ba_global_frames_ratio``).
+        complete_tracks: continue, complete and merge tracks (off: the tracks of ``build_tracks`` only).
+        complete_max_error_px: largest reprojection error of an observation added by continuation,
+            completion or merging (COLMAP's ``complete_max_reproj_error`` is 4 px; 2 here, as
+            :func:`filter_points` keeps 1 px).
+        ignore_two_view_tracks: do not triangulate tracks of two keypoints (COLMAP's option of that
+            name, on by default): such a point is never checked by a third image.
+        max_descriptor_distance: largest distance between unit SIFT descriptors of a keypoint added
+            by completion and the point's observations (COLMAP's matcher allows 0.7; candidates
+            here skip the ratio test, and on the 12-view benchmark orbit 0.6-0.7 let in
+            observations that raised the rotation error, 0.5 did not).
 
-    Returns the model (``poses``, ``registered``, ``points``, ``point_tracks``, ``observed``),
-    ``cameras``, ``points3d``, ``observations`` and ``registration_errors`` (per registered image:
-    the linear and non-linear PnP RMS). Warns with each image that could not be registered and why.
-    Corresponds to ``pycolmap.incremental_mapping``.
+    Returns the model (``poses``, ``registered``, ``points``, ``point_tracks``, ``observed``, and
+    ``model_track_of`` ``(N,)``: the track of each keypoint after continuation, completion and
+    merging, which ``point_tracks`` refer to), ``cameras``, ``points3d``, ``observations`` and
+    ``registration_errors`` (per registered image: the linear and non-linear PnP RMS). Warns with
+    each image that could not be registered and why. Corresponds to ``pycolmap.incremental_mapping``.
 
-    Reference: Schönberger and Frahm, CVPR 2016, sections 3-4; H&Z chapters 7 and 12; Triggs et al. (2000).
+    Reference: Schönberger and Frahm, CVPR 2016, sections 3-4 (4.5: continue, merge and complete
+    tracks); H&Z chapters 7 and 12; Triggs et al. (2000).
     """
     images = _images(images)
     keypoints = _keypoints(keypoints, len(images))
-    track_of = _track_of(track_of, keypoints)
+    track_of = _track_of(track_of, keypoints).copy()  # becomes model_track_of: continued, completed, merged
     K = check_intrinsics(K, images)
+    unit = None
+    if descriptors is not None:
+        descriptors = np.asarray(descriptors)
+        if descriptors.ndim != 2 or len(descriptors) != len(keypoints):
+            raise InvalidValue("descriptors", f"expected one row per keypoint ({len(keypoints)}), got "
+                                              f"{descriptors.shape}")
+        unit = unit_descriptors(descriptors)
+    trees = _keypoint_trees(keypoints, len(images)) if complete_tracks else {}
+    sizes = np.array([[image.width, image.height] for image in images.images], dtype=np.float64)
+    guided = dict(max_error_px=complete_max_error_px, max_descriptor_distance=max_descriptor_distance)
+    continued = completed = merged = 0
     anchor, _ = _initial(initial_pair, len(images))
     model = _model_from(initial_poses, initial_registered, initial_points, initial_point_tracks, len(images), keypoints)
     num_tracks = int(track_of.max()) + 1 if len(track_of) and track_of.max() >= 0 else 0
@@ -971,11 +1373,15 @@ def reconstruct_incrementally(images: ImageSet, keypoints: Points2D, track_of: n
         model.poses[best] = _poses_matrix(R, t)
         model.registered[best] = True
         model.observed[kp[~inl]] = False
+        if complete_tracks:
+            continued += _continue_tracks(model, K, keypoints, track_of, best, max_error_px=complete_max_error_px)
         order.append(best)
         reasons.pop(best, None)
         failures[:] = 0
         added, before, after = _triangulate_new(model, K, keypoints, track_of, tried, min_angle_deg=min_angle_deg,
-                                                max_error_px=max_error_px)
+                                                max_error_px=max_error_px,
+                                                min_track_length=2 if complete_tracks or not ignore_two_view_tracks
+                                                else 3)
         if added:
             tri_before.append((before, added))
             tri_after.append((after, added))
@@ -999,6 +1405,17 @@ def reconstruct_incrementally(images: ImageSet, keypoints: Points2D, track_of: n
             ba_before.append(result.rms_before)
             ba_after.append(result.rms_after)
             ba_ok &= result.rms_after <= result.rms_before
+        if complete_tracks:
+            added, joined = _complete_and_merge(model, K, keypoints, track_of, unit, trees, sizes, **guided)
+            completed, merged = completed + added, merged + joined
+            if ignore_two_view_tracks:
+                _drop_two_view_points(model, track_of, tried)
+        _reject_outliers(model, K, keypoints, track_of, max_error_px)
+    if complete_tracks and order:
+        added, joined = _complete_and_merge(model, K, keypoints, track_of, unit, trees, sizes, rounds=3, **guided)
+        completed, merged = completed + added, merged + joined
+        if ignore_two_view_tracks:
+            _drop_two_view_points(model, track_of, tried)
         _reject_outliers(model, K, keypoints, track_of, max_error_px)
     if len(order) == 0 and not model.registered.all():
         names = "; ".join(f"{images.names[v]} (image {v}): {reasons.get(int(v), 'not connected')}"
@@ -1020,8 +1437,9 @@ def reconstruct_incrementally(images: ImageSet, keypoints: Points2D, track_of: n
         return float(np.sqrt(sum(r * r * n for r, n in values) / total)) if total else 0.0
 
     return IncrementalModel(
-        model.poses, model.registered, model.points, model.point_tracks, model.observed, cameras, cloud, observations,
-        chart, warnings, int(model.registered.sum()), len(model.points), float(counts.mean()) if len(counts) else 0.0,
+        model.poses, model.registered, model.points, model.point_tracks, model.observed, track_of, cameras, cloud,
+        observations, chart, warnings, int(model.registered.sum()), len(model.points),
+        float(counts.mean()) if len(counts) else 0.0, continued, completed, merged,
         float(np.mean(linear_rms)) if linear_rms else 0.0, float(np.mean(nonlinear_rms)) if nonlinear_rms else 0.0,
         weighted(tri_before), weighted(tri_after), ba_before[-1] if ba_before else 0.0,
         ba_after[-1] if ba_after else 0.0, bool(ba_ok))
@@ -1051,7 +1469,8 @@ def _error_colors(errors: np.ndarray, scale: float) -> np.ndarray:
 
 
 def filter_points(images: ImageSet, keypoints: Points2D, track_of: np.ndarray, K: np.ndarray, poses: np.ndarray,
-                  registered: np.ndarray, points: np.ndarray, point_tracks: np.ndarray, observed: np.ndarray, *,
+                  registered: np.ndarray, points: np.ndarray, point_tracks: np.ndarray, observed: np.ndarray,
+                  model_track_of: np.ndarray | None = None, *,
                   max_error_px: Annotated[float, Range(0.1, 50.0)] = 1.0,
                   min_angle_deg: Annotated[float, Range(0.0, 30.0)] = 1.5) -> FilteredModel:
     """Drop observations whose reprojection error exceeds ``max_error_px``, then points left with fewer
@@ -1065,6 +1484,9 @@ def filter_points(images: ImageSet, keypoints: Points2D, track_of: np.ndarray, K
         max_error_px: largest reprojection error of an observation kept, pixels.
         min_angle_deg: smallest largest-angle between two rays of a point kept, degrees.
 
+    ``model_track_of`` (the tracks after :func:`reconstruct_incrementally` continued, completed and
+    merged them) replaces ``track_of`` when present.
+
     Returns ``filtered_points``, ``filtered_point_tracks`` and ``filtered_observed`` (the
     observations still used). Corresponds to COLMAP's ``FilterPoints`` (max reprojection error,
     min triangulation angle).
@@ -1073,7 +1495,7 @@ def filter_points(images: ImageSet, keypoints: Points2D, track_of: np.ndarray, K
     """
     images = _images(images)
     keypoints = _keypoints(keypoints, len(images))
-    track_of = _track_of(track_of, keypoints)
+    track_of = _model_tracks(track_of, model_track_of, keypoints)
     K = check_intrinsics(K, images)
     model = _model_from(poses, registered, points, point_tracks, len(images), keypoints, observed)
     kp, views, point = model.observations(keypoints, track_of)
@@ -1124,7 +1546,8 @@ class AdjustedModel:
 
 def bundle_adjust_all(images: ImageSet, keypoints: Points2D, track_of: np.ndarray, K: np.ndarray,
                       initial_pair: np.ndarray, poses: np.ndarray, registered: np.ndarray, filtered_points: np.ndarray,
-                      filtered_point_tracks: np.ndarray, filtered_observed: np.ndarray, *,
+                      filtered_point_tracks: np.ndarray, filtered_observed: np.ndarray,
+                      model_track_of: np.ndarray | None = None, *,
                       loss: Literal["linear", "huber", "soft_l1", "cauchy", "arctan"] = "huber",
                       f_scale: Annotated[float, Range(0.01, 100.0)] = 1.0, refine_intrinsics: bool = False,
                       max_iterations: Annotated[int, Range(1, 500)] = 50,
@@ -1137,6 +1560,7 @@ def bundle_adjust_all(images: ImageSet, keypoints: Points2D, track_of: np.ndarra
     scale ``f_scale`` px) (:func:`lab.geometry.bundle_adjustment.bundle_adjust`). The first initial
     view is held fixed and one translation entry fixes the scale (the gauge). The result is kept
     only if the RMS error falls (never a worse model). Yields the RMS at every iteration.
+    ``model_track_of`` (the incremental step's tracks) replaces ``track_of`` when present.
 
     Args:
         loss: robust loss ("linear" is plain least squares).
@@ -1154,7 +1578,7 @@ def bundle_adjust_all(images: ImageSet, keypoints: Points2D, track_of: np.ndarra
     """
     images = _images(images)
     keypoints = _keypoints(keypoints, len(images))
-    track_of = _track_of(track_of, keypoints)
+    track_of = _model_tracks(track_of, model_track_of, keypoints)
     K = check_intrinsics(K, images)
     anchor, _ = _initial(initial_pair, len(images))
     model = _model_from(poses, registered, filtered_points, filtered_point_tracks, len(images), keypoints,
@@ -1291,6 +1715,8 @@ def reconstruction_from_state(state: dict[str, Any]):
     images: ImageSet = _images(state.get("images"))
     keypoints = _keypoints(state.get("keypoints"), len(images))
     track_of = _track_of(state.get("track_of"), keypoints)
+    if "model_track_of" in state and "points" in state:  # every stage after the incremental one
+        track_of = _track_of(state["model_track_of"], keypoints)
     K = np.asarray(state["K"], dtype=np.float64)
     if "adjusted_points" in state:
         model = _model_from(state["adjusted_poses"], state["registered"], state["adjusted_points"],
@@ -1351,6 +1777,6 @@ PIPELINE = Pipeline.build(
 )
 
 __all__ = ["PIPELINE", "RegistrationFailed", "detect_all_features", "match_all_pairs", "image_pairs", "verify_pairs",
-           "build_tracks", "choose_initial_pair", "initialize_pose", "triangulate_initial", "refine_initial_points",
-           "reconstruct_incrementally", "filter_points", "bundle_adjust_all", "umeyama", "align_poses", "pose_errors",
-           "reconstruction_from_state"]
+           "build_tracks", "split_inconsistent", "unit_descriptors", "choose_initial_pair", "initialize_pose",
+           "triangulate_initial", "refine_initial_points", "reconstruct_incrementally", "filter_points",
+           "bundle_adjust_all", "umeyama", "align_poses", "pose_errors", "reconstruction_from_state"]
