@@ -55,7 +55,10 @@
     Each is a function with the parameters of a task's step; a hint
     ``{ when = "same_as_mistake", mistake = "winner_take_all_argmax", say = "..." }`` runs it on
     the check's inputs and controls (in the grader's process, like the reference: it is trusted
-    code) and fires when the student's result matches it.
+    code) and fires when the student's result matches it. A hint that runs an alternative
+    (``same_as_mistake``, ``same_as_reference_with``) compares with the check's comparison (stage
+    output) or up to scale (stage pipeline), unless it names its own: ``compare = "allclose"``,
+    ``compare_options = { rtol = 1e-6 }``.
 
 Everything is checked when a lesson is loaded (:func:`load_lesson`): names of steps, controls,
 datasets, values and comparisons, the signatures against the module's own steps, the points, and
@@ -585,6 +588,7 @@ def validate_lesson(lesson: Lesson) -> None:
                 if hint.when not in DETECTORS:
                     raise LessonFormatError(f"{cat}.hints[{hi}].when", f"unknown detector {hint.when!r}; "
                                                                       f"detectors are {sorted(DETECTORS)}")
+                _hint_options(hint, f"{cat}.hints[{hi}]")
                 if hint.when == "same_as_reference_with":
                     _controls(spec, hint.options.get("params", {}), f"{cat}.hints[{hi}].params")
                 if hint.when == "same_as_mistake":
@@ -633,6 +637,37 @@ def _functions(source: str, where: str) -> dict[str, ast.FunctionDef]:
     except SyntaxError as exc:
         raise LessonFormatError(where, f"line {exc.lineno}: {exc.msg}") from None
     return {node.name: node for node in tree.body if isinstance(node, ast.FunctionDef)}
+
+
+#: Keys of a hint that runs an alternative (the reference with other controls, or a mistake) and compares.
+_ALTERNATIVE_HINT_KEYS = {"same_as_reference_with": {"params", "compare", "compare_options"},
+                          "same_as_mistake": {"mistake", "compare", "compare_options"}}
+
+
+def _hint_options(hint: HintRule, where: str) -> None:
+    """A hint's keys are its detector's options; ``compare`` names a comparison and its ``compare_options``."""
+    from lab.lessons.checks import COMPARISONS, DETECTORS, check_options
+
+    if hint.when in _ALTERNATIVE_HINT_KEYS:
+        allowed = _ALTERNATIVE_HINT_KEYS[hint.when]
+    else:
+        parameters = inspect.signature(DETECTORS[hint.when]).parameters.values()
+        allowed = {p.name for p in parameters if p.kind == p.KEYWORD_ONLY}
+    for key in hint.options:
+        if key not in allowed:
+            raise LessonFormatError(f"{where}.{key}", f"detector {hint.when!r} takes no option {key!r}; "
+                                                     f"its options are {sorted(allowed)}")
+    if "compare_options" in hint.options and "compare" not in hint.options:
+        raise LessonFormatError(f"{where}.compare_options", "give the comparison they are for (compare = ...)")
+    if "compare" in hint.options:
+        compare = hint.options["compare"]
+        if compare not in COMPARISONS:
+            raise LessonFormatError(f"{where}.compare", f"unknown comparison {compare!r}; comparisons are "
+                                                        f"{sorted(COMPARISONS)}")
+        problem = check_options(compare, dict(_table(hint.options.get("compare_options", {}),
+                                                     f"{where}.compare_options")))
+        if problem:
+            raise LessonFormatError(f"{where}.compare_options.{problem[0]}", problem[1])
 
 
 def _mistake(mistakes: dict[str, ast.FunctionDef], name: Any, expected: Parameters, where: str, file: str) -> None:

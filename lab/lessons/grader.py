@@ -516,11 +516,17 @@ class Grader:
                 first = self.pipeline.step(task.step).writes[0]
                 if alternative.error or first not in alternative.outputs:
                     continue
-                compare = checks_module.COMPARISONS[check.compare] if check.stage == "output" \
-                    else checks_module.equal_up_to_scale
+                # the hint's own comparison, else the check's (stage output), else equality up to scale
+                if "compare" in options:
+                    compare, compare_options = (checks_module.COMPARISONS[options["compare"]],
+                                                options.get("compare_options", {}))
+                elif check.stage == "output":
+                    compare, compare_options = checks_module.COMPARISONS[check.compare], check.options
+                else:
+                    compare, compare_options = checks_module.equal_up_to_scale, {}
                 try:
                     outcome = compare(got_array, checks_module.as_compared(alternative.outputs[first]),
-                                      **(check.options if check.stage == "output" else {}))
+                                      **compare_options)
                 except (TypeError, ValueError):
                     continue
                 options = {"outcome": outcome, **({"mistake": options["mistake"]} if rule.when == "same_as_mistake"

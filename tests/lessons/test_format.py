@@ -176,6 +176,25 @@ def test_a_mistake_hint_names_a_function_of_mistakes_py_with_the_steps_parameter
     assert reason in caught.value.reason, caught.value.reason
 
 
+@pytest.mark.parametrize("hint,field,reason", [
+    ('{ when = "same_as_mistake", mistake = "means_summed", compare = "roughly" }', "hints[1].compare",
+     "unknown comparison 'roughly'"),
+    ('{ when = "same_as_mistake", mistake = "means_summed", compare = "allclose", compare_options = { wiggle = 1 } }',
+     "hints[1].compare_options.wiggle", "has no option 'wiggle'"),
+    ('{ when = "same_as_mistake", mistake = "means_summed", compare_options = { rtol = 1 } }',
+     "hints[1].compare_options", "give the comparison"),
+    ('{ when = "same_as_mistake", mistake = "means_summed", params = { scale = 2 } }', "hints[1].params",
+     "takes no option 'params'"),
+    ('{ when = "entry_not", index = [0], valu = 1.0 }', "hints[1].valu", "takes no option 'valu'"),
+])
+def test_hint_keys_are_the_detectors_options(tmp_path, hint, field, reason):
+    folder = copy_toy(tmp_path, tasks=edited('{ when = "scaled" }, ' + SCALE_HINT, '{ when = "scaled" }, ' + hint))
+    with pytest.raises(LessonFormatError) as caught:
+        load_lesson(folder)
+    assert caught.value.field.endswith(field), caught.value.field
+    assert reason in caught.value.reason
+
+
 def test_a_mistakes_py_that_fails_to_run_is_a_format_error(tmp_path):
     folder = copy_toy(tmp_path)
     (folder / "mistakes.py").write_text((TOY / "mistakes.py").read_text() + "\nimport no_such_module_here\n")

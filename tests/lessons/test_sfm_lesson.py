@@ -146,3 +146,13 @@ def test_the_mistakes_dlt_with_hartleys_normalization_is_the_labs(sfm_lesson):
     assert np.any(reference[:, 2, 3] < 0)  # a camera with the world origin behind it: the sign mistake shows
     for mistake in ("pnp_without_normalization", "pnp_without_orthonormalization", "pnp_sign_from_last_entry"):
         assert np.abs(mistakes[mistake](*inputs) - reference).max() > 1e-6, mistake
+
+
+def test_a_hint_compares_as_it_says_so_right_poses_times_two_get_no_sign_hint(sfm_lesson):
+    """The sign mistake is +-1 times the right pose per camera, so its pipeline-stage hints compare with
+    allclose (compare = "allclose" in tasks.toml), not up to scale: 2 [R | t] is not told it flipped signs."""
+    source = submission("sfm", "solution.py").replace("def estimate_poses_linear(", "def _right_poses(")
+    source += "\n\ndef estimate_poses_linear(*args, **kwargs):\n    return 2.0 * _right_poses(*args, **kwargs)\n"
+    lost = failed(grade(sfm_lesson, source, seed=SEED))
+    assert lost and all(name.startswith("Linear PnP") for name in lost)
+    assert not any(HINTS["wrong_sign_from_last_entry.py"] in output for output in lost.values())
