@@ -48,14 +48,17 @@ def _correspondences(points3d: object, points2d: object, minimum: int = MIN_CORR
     return X, x
 
 
-def _dlt_batch(X: np.ndarray, x: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Batched DLT on ``B`` sets: world ``(B, n, 3)``, normalized image points ``(B, n, 2)``.
+def dlt_projection_matrices(X: np.ndarray, x: np.ndarray, *,
+                            hartley: bool = True) -> tuple[np.ndarray, np.ndarray]:
+    """Batched DLT of ``B`` sets: world ``(B, n, 3)``, normalized image points ``(B, n, 2)`` -> ``P`` ``(B, 3, 4)``.
 
-    Returns ``R`` ``(B, 3, 3)``, ``t`` ``(B, 3)`` and the singular values of the ``2n x 12``
-    systems ``(B, 12)`` (to judge degeneracy).
+    Each ``P`` is the null vector of its ``2n x 12`` system (H&Z eq. (7.2)), solved on Hartley-normalized
+    point sets unless ``hartley`` is False (lesson 04's mistake of that name uses it), the normalizations
+    undone, the sign chosen so that the points' depths are positive. Also returns the singular values of
+    the systems ``(B, 12)`` (to judge degeneracy).
     """
-    T3, Xn = hartley_normalization(X)  # (B, 4, 4), (B, n, 3)
-    T2, xn = hartley_normalization(x)  # (B, 3, 3), (B, n, 2)
+    T3, Xn = hartley_normalization(X) if hartley else (np.broadcast_to(np.eye(4), (len(X), 4, 4)), X)
+    T2, xn = hartley_normalization(x) if hartley else (np.broadcast_to(np.eye(3), (len(x), 3, 3)), x)
     b, n = X.shape[:2]
     Xh = np.concatenate([Xn, np.ones((b, n, 1))], axis=2)  # (B, n, 4)
     zeros = np.zeros_like(Xh)
@@ -69,7 +72,16 @@ def _dlt_batch(X: np.ndarray, x: np.ndarray) -> tuple[np.ndarray, np.ndarray, np
     # sign: the points must be in front of the camera (positive third coordinate of P X)
     depth = np.einsum("bj,bnj->bn", P[:, 2, :3], X) + P[:, 2, 3][:, None]
     sign = np.where(np.sum(np.sign(depth), axis=1) < 0, -1.0, 1.0)
-    P = P * sign[:, None, None]
+    return P * sign[:, None, None], s
+
+
+def _dlt_batch(X: np.ndarray, x: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Batched DLT on ``B`` sets: world ``(B, n, 3)``, normalized image points ``(B, n, 2)``.
+
+    Returns ``R`` ``(B, 3, 3)``, ``t`` ``(B, 3)`` and the singular values of the ``2n x 12``
+    systems ``(B, 12)`` (to judge degeneracy).
+    """
+    P, s = dlt_projection_matrices(X, x)
     M = P[:, :, :3]
     sv = np.linalg.svd(M, compute_uv=False)
     R = nearest_rotation(M)
@@ -310,4 +322,4 @@ def refine_pnp(R: np.ndarray, t: np.ndarray, points3d: np.ndarray, points2d: np.
     return R_new, t_new
 
 
-__all__ = ["MIN_CORRESPONDENCES", "pnp_dlt", "reprojection_errors", "PnPResult", "pnp_ransac", "refine_pnp"]
+__all__ = ["MIN_CORRESPONDENCES", "pnp_dlt", "dlt_projection_matrices", "reprojection_errors", "PnPResult", "pnp_ransac", "refine_pnp"]

@@ -730,7 +730,7 @@ _local_optimization = _kernel(_local_optimization_py)
 def _sampson_refit_py(F: np.ndarray, x1: np.ndarray, x2: np.ndarray, mask: np.ndarray,
                       iterations: int) -> np.ndarray:
     """:func:`_sampson_weighted_refit` of the pairs ``mask`` selects (no copies) as one compiled call."""
-    n = _normal_equations(x1, x2, mask, np.zeros((3, 3)))[1]
+    n = _pair_normalization(x1, x2, mask)
     Fn = _transform_fundamental(F, 1.0 / n[0], n[1:3].copy(), 1.0 / n[3], n[4:6].copy())  # T2^-T F T1^-1
     if not np.any(Fn != 0.0):
         return F
@@ -740,8 +740,6 @@ def _sampson_refit_py(F: np.ndarray, x1: np.ndarray, x2: np.ndarray, mask: np.nd
 
 
 _sampson_refit = _kernel(_sampson_refit_py)
-
-
 
 
 def _distance_from_best_line_py(x: np.ndarray, mask: np.ndarray) -> float:
@@ -1184,7 +1182,7 @@ def _sampson_weighted_refit(F: np.ndarray, x1: np.ndarray, x2: np.ndarray, itera
     OpenCV's 8-point solves too).
     """
     everything = np.ones(len(x1), dtype=bool)
-    n = _normal_equations(x1, x2, everything, np.zeros((3, 3)))[1]
+    n = _pair_normalization(x1, x2, everything)
     inverse1, inverse2 = _similarity(1.0 / n[0], -n[0] * n[1:3]), _similarity(1.0 / n[3], -n[3] * n[4:])  # T^-1
     Fn = inverse2.T @ F @ inverse1
     if not np.any(Fn):
@@ -1434,6 +1432,8 @@ def _truncated_variance_factor(c: float, dof: int = 1) -> float:
 def noise_sigma(residuals: np.ndarray, *, start_px: float = 1.0, cut: float = 3.0, iterations: int = 30) -> float:
     """Robust noise scale (px) from residuals ``(N,)`` that are ``sigma |N(0, 1)|`` for inliers, anything for outliers.
 
+    The iteration is the compiled :func:`_noise_sigma` (its readable body ``_noise_sigma_py``).
+
     Start from ``max(1.4826 median, start_px)`` (at or above sigma with up to ~50 % outliers), then
     iterate the truncated estimate: keep ``|d| <= cut sigma`` and set ``sigma^2 = mean(d^2) / E[z^2 | |z|
     <= cut]`` (the correction for the truncation, 0.973 at 3 sigma) until it settles; it descends to the
@@ -1444,17 +1444,8 @@ def noise_sigma(residuals: np.ndarray, *, start_px: float = 1.0, cut: float = 3.
     d = np.abs(residuals[np.isfinite(residuals)])
     if len(d) == 0:
         return SIGMA_FLOOR_PX
-    factor = _truncated_variance_factor(cut)
-    sigma = max(1.4826 * float(np.median(d)), float(start_px), SIGMA_FLOOR_PX)
-    for _ in range(iterations):
-        kept = d[d <= cut * sigma]
-        if len(kept) < SAMPLE_SIZE:
-            break
-        new = max(float(np.sqrt(np.mean(kept * kept) / factor)), SIGMA_FLOOR_PX)
-        if abs(new - sigma) <= 1e-3 * sigma:
-            return new
-        sigma = new
-    return sigma
+    start = max(1.4826 * float(np.median(d)), float(start_px), SIGMA_FLOOR_PX)
+    return float(_noise_sigma(d, start, cut, _truncated_variance_factor(cut), iterations, SIGMA_FLOOR_PX))
 
 
 def gric(residuals: np.ndarray, sigma: float, d: int, k: int, r: int = GRIC_R) -> float:
@@ -1555,10 +1546,7 @@ def _check_not_degenerate(F: np.ndarray, x1: np.ndarray, x2: np.ndarray, inliers
     if distances is None:  # F's Sampson distances of all the pairs (RANSAC passes those it has)
         with np.errstate(divide="ignore", invalid="ignore"):
             distances = sampson_distance(F, x1, x2)
-    finite = np.abs(distances[np.isfinite(distances)])
-    sigma = SIGMA_FLOOR_PX if len(finite) == 0 else _noise_sigma(  # noise_sigma(distances, start_px=threshold_px)
-        finite, max(1.4826 * float(np.median(finite)), float(threshold_px), SIGMA_FLOOR_PX), 3.0,
-        _truncated_variance_factor(3.0), 30, SIGMA_FLOOR_PX)
+    sigma = noise_sigma(distances, start_px=threshold_px)
     consistent = np.flatnonzero(distances <= max(3.0 * sigma, threshold_px))
     if len(consistent) < SAMPLE_SIZE:
         consistent = np.flatnonzero(inliers)

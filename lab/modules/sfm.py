@@ -177,15 +177,23 @@ class _Model:
                       self.observed.copy())
 
 
-def _observation_errors(model: _Model, K: np.ndarray, keypoints: Points2D, kp: np.ndarray, views: np.ndarray,
-                        points: np.ndarray) -> np.ndarray:
-    """Reprojection error (px) of each observation ``(keypoint, view, point)``; ``inf`` behind the camera."""
-    R, t = model.poses[views, :, :3], model.poses[views, :, 3]
-    Xc = np.einsum("nij,nj->ni", R, model.points[points]) + t
+def _project(model: _Model, K: np.ndarray, views: np.ndarray, points: np.ndarray,
+             X: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """Pixels ``(n, 2)`` and depths ``(n,)`` of ``points`` (or of positions ``X``) in ``views``."""
+    X = model.points[points] if X is None else X
+    Xc = np.einsum("nij,nj->ni", model.poses[views, :, :3], X) + model.poses[views, :, 3]
     with np.errstate(divide="ignore", invalid="ignore"):
         uv = np.einsum("nij,nj->ni", K[views], Xc / Xc[:, 2:3])[:, :2]
+    return uv, Xc[:, 2]
+
+
+def _observation_errors(model: _Model, K: np.ndarray, keypoints: Points2D, kp: np.ndarray, views: np.ndarray,
+                        points: np.ndarray, X: np.ndarray | None = None) -> np.ndarray:
+    """Reprojection error (px) of each observation ``(keypoint, view, point)`` (the point at ``X`` when
+    given); ``inf`` behind the camera."""
+    uv, depth = _project(model, K, views, points, X)
     errors = np.linalg.norm(uv - keypoints.xy[kp], axis=1)
-    return np.where((Xc[:, 2] > 0) & np.isfinite(errors), errors, np.inf)
+    return np.where((depth > 0) & np.isfinite(errors), errors, np.inf)
 
 
 def _point_colors(images: ImageSet, keypoints: Points2D, model: _Model, track_of: np.ndarray) -> np.ndarray:
@@ -445,6 +453,16 @@ def unit_descriptors(descriptors: np.ndarray) -> np.ndarray:
     return d / np.maximum(np.linalg.norm(d, axis=1, keepdims=True), 1e-12)
 
 
+def _unit_descriptors_of(descriptors: Any, keypoints: Points2D) -> np.ndarray | None:
+    """:func:`unit_descriptors` of an optional input, checked to have one row per keypoint (None stays None)."""
+    if descriptors is None:
+        return None
+    descriptors = np.asarray(descriptors)
+    if descriptors.ndim != 2 or len(descriptors) != len(keypoints):
+        raise InvalidValue("descriptors", f"expected one row per keypoint ({len(keypoints)}), got {descriptors.shape}")
+    return unit_descriptors(descriptors)
+
+
 def split_inconsistent(edges: np.ndarray, view: np.ndarray, order: np.ndarray | None = None) -> np.ndarray:
     """Cut an inconsistent match graph into consistent tracks: a union-find that never joins two sets sharing a view.
 
@@ -508,10 +526,7 @@ def build_tracks(keypoints: Points2D, inlier_matches: np.ndarray, descriptors: n
     track_of = np.full(n, -1, dtype=np.int64)
     if not len(m):
         return Tracks(track_of, ("no verified matches: no tracks",), 0, 0.0, 0, 0, 0, 0)
-    if descriptors is not None:
-        descriptors = np.asarray(descriptors)
-        if descriptors.ndim != 2 or len(descriptors) != n:
-            raise InvalidValue("descriptors", f"expected one row per keypoint ({n}), got {descriptors.shape}")
+    unit = _unit_descriptors_of(descriptors, keypoints)
     graph = scipy.sparse.coo_matrix((np.ones(len(m)), (m[:, 2], m[:, 3])), shape=(n, n))
     _, labels = connected_components(graph, directed=False)
     sizes = np.bincount(labels)
@@ -532,8 +547,7 @@ def build_tracks(keypoints: Points2D, inlier_matches: np.ndarray, descriptors: n
         local[members] = np.arange(len(members))
         edges = m[bad_label[labels[m[:, 2]]]][:, 2:]
         order = None
-        if descriptors is not None:
-            unit = unit_descriptors(descriptors)
+        if unit is not None:
             order = np.argsort(np.linalg.norm(unit[edges[:, 0]] - unit[edges[:, 1]], axis=1), kind="stable")
         root = split_inconsistent(local[edges], keypoints.view[members], order)
         part = members[root]  # a keypoint index names each part, distinct from every component label
@@ -973,16 +987,6 @@ def _triangulate_new(model: _Model, K: np.ndarray, keypoints: Points2D, track_of
 
 
 # --- COLMAP's incremental triangulator: continue, complete and merge tracks (Schönberger and Frahm 2016, 4.5) ---
-def _project(model: _Model, K: np.ndarray, views: np.ndarray, points: np.ndarray,
-             X: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
-    """Pixels ``(n, 2)`` and depths ``(n,)`` of ``points`` (or of positions ``X``) in ``views``."""
-    X = model.points[points] if X is None else X
-    Xc = np.einsum("nij,nj->ni", model.poses[views, :, :3], X) + model.poses[views, :, 3]
-    with np.errstate(divide="ignore", invalid="ignore"):
-        uv = np.einsum("nij,nj->ni", K[views], Xc / Xc[:, 2:3])[:, :2]
-    return uv, Xc[:, 2]
-
-
 def _continue_tracks(model: _Model, K: np.ndarray, keypoints: Points2D, track_of: np.ndarray, view: int, *,
                      max_error_px: float) -> int:
     """Track continuation: the new image's keypoints whose tracks already have a point become observations
@@ -993,8 +997,7 @@ def _continue_tracks(model: _Model, K: np.ndarray, keypoints: Points2D, track_of
     kp, point = _correspondences_2d3d(model, keypoints, track_of, view, all_keypoints=True)
     if not len(kp):
         return 0
-    uv, depth = _project(model, K, np.full(len(kp), view), point)
-    good = (depth > 0) & (np.linalg.norm(uv - keypoints.xy[kp], axis=1) <= max_error_px)
+    good = _observation_errors(model, K, keypoints, kp, np.full(len(kp), view), point) <= max_error_px
     model.observed[kp] = good
     return int(good.sum())
 
@@ -1137,9 +1140,8 @@ def _merge_tracks(model: _Model, K: np.ndarray, keypoints: Points2D, track_of: n
         slot[:] = -1
         slot[pairs[:, side]] = np.arange(len(pairs))
         rows = np.flatnonzero(slot[point] >= 0)
-        uv, depth = _project(model, K, views[rows], point[rows], merged[slot[point[rows]]])
-        error = np.where(depth > 0, np.linalg.norm(uv - keypoints.xy[kp[rows]], axis=1), np.inf)
-        np.maximum.at(worst, slot[point[rows]], np.nan_to_num(error, nan=np.inf))
+        error = _observation_errors(model, K, keypoints, kp[rows], views[rows], point[rows], merged[slot[point[rows]]])
+        np.maximum.at(worst, slot[point[rows]], error)
     good = worst <= max_error_px
     pairs, merged, worst = pairs[good], merged[good], worst[good]
     if not len(pairs):
@@ -1315,13 +1317,7 @@ def reconstruct_incrementally(images: ImageSet, keypoints: Points2D, track_of: n
     keypoints = _keypoints(keypoints, len(images))
     track_of = _track_of(track_of, keypoints).copy()  # becomes model_track_of: continued, completed, merged
     K = check_intrinsics(K, images)
-    unit = None
-    if descriptors is not None:
-        descriptors = np.asarray(descriptors)
-        if descriptors.ndim != 2 or len(descriptors) != len(keypoints):
-            raise InvalidValue("descriptors", f"expected one row per keypoint ({len(keypoints)}), got "
-                                              f"{descriptors.shape}")
-        unit = unit_descriptors(descriptors)
+    unit = _unit_descriptors_of(descriptors, keypoints)
     trees = _keypoint_trees(keypoints, len(images)) if complete_tracks else {}
     sizes = np.array([[image.width, image.height] for image in images.images], dtype=np.float64)
     guided = dict(max_error_px=complete_max_error_px, max_descriptor_distance=max_descriptor_distance)

@@ -12,7 +12,7 @@ import numpy as np
 
 from lab.core import Points2D
 from lab.geometry.camera import pixels_to_normalized
-from lab.geometry.homogeneous import hartley_normalization
+from lab.geometry.pnp import dlt_projection_matrices
 from lab.geometry.rotations import nearest_rotation
 from lab.modules import sfm_basics
 
@@ -20,7 +20,8 @@ from lab.modules import sfm_basics
 # --- task 1: linear PnP ---------------------------------------------------------------------------
 def _dlt_matrices(points3d, observations, K, *, hartley):
     """``(V, 3, 4)``: every camera's DLT matrix ``P`` for normalized coordinates ``K^-1 x``, its sign
-    chosen so that the points it sees have positive depth (lesson.md, task 1, steps 1 to 4).
+    chosen so that the points it sees have positive depth (lesson.md, task 1, steps 1 to 4): the lab's
+    :func:`lab.geometry.pnp.dlt_projection_matrices`.
 
     ``hartley=False`` solves the system on the coordinates as they are (``T2``, ``T3`` the identity).
     """
@@ -28,18 +29,8 @@ def _dlt_matrices(points3d, observations, K, *, hartley):
     matrices = []
     for view in range(int(observations.view.max()) + 1):
         seen = observations.view == view
-        X = world[observations.ids[seen]]
         x = pixels_to_normalized(observations.xy[seen], K)
-        T3, X_n = hartley_normalization(X) if hartley else (np.eye(4), X)
-        T2, x_n = hartley_normalization(x) if hartley else (np.eye(3), x)
-        X_h = np.column_stack([X_n, np.ones(len(X_n))])
-        system = np.zeros((2 * len(X_h), 12))
-        system[0::2, 0:4], system[0::2, 8:12] = X_h, -x_n[:, [0]] * X_h  # [X~^T, 0, -x X~^T]
-        system[1::2, 4:8], system[1::2, 8:12] = X_h, -x_n[:, [1]] * X_h  # [0, X~^T, -y X~^T]
-        null_vector = np.linalg.svd(system)[2][-1]
-        P = np.linalg.solve(T2, null_vector.reshape(3, 4)) @ T3
-        depths = np.column_stack([X, np.ones(len(X))]) @ P[2]
-        matrices.append(-P if np.sign(depths).sum() < 0 else P)
+        matrices.append(dlt_projection_matrices(world[observations.ids[seen]][None], x[None], hartley=hartley)[0][0])
     return np.array(matrices)
 
 
