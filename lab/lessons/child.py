@@ -1,24 +1,30 @@
 """The sandboxed child process that runs a student's code (the parent side is :mod:`lab.lessons.sandbox`).
 
-Started as ``python -I -c "...main()" REQUEST_FD RESPONSE_FD`` in an empty temporary directory
-with a scrubbed environment, its stdin on /dev/null and its stdout/stderr on a pipe the parent
-drains and caps. It reads its setup from the parent, then, before any student code runs:
+Started as ``python -I -c "...main()" REQUEST_FD RESPONSE_FD`` inside the operating-system sandbox of
+:mod:`lab.lessons.isolation` (its own namespaces, a read-only root holding only the Python
+installation and ``lab/core``, an empty tmpfs as working directory), with a scrubbed environment,
+its stdin on /dev/null and its stdout/stderr on a pipe the parent drains and caps. It reads its
+setup from the parent, writes the submission into its working directory, then, before any student
+code runs:
 
-1. imports NumPy and the few ``lab.core`` modules the step signatures use (to unpickle inputs);
+1. imports NumPy and the few ``lab.core`` modules the step signatures use (to rebuild inputs);
 2. sets resource limits (RLIMIT_CPU, RLIMIT_AS, RLIMIT_FSIZE, RLIMIT_NOFILE, RLIMIT_NPROC, no core);
-3. when started as root, becomes the unprivileged user ``nobody`` (so RLIMIT_NPROC applies and
-   the parent, other users' files and other processes are out of reach);
-4. installs an audit hook (PEP 578) that refuses: importing the lab's reference implementation
+3. only under ``--unsafe-sandbox`` (no namespaces) and started as root: becomes ``nobody`` when it
+   can (inside the sandbox the user was already switched by bubblewrap);
+4. installs an audit hook (PEP 578), defence in depth only (code can switch it off; the namespaces
+   are what contain it), that refuses: importing the lab's reference implementation
    or data (anything under ``lab`` but ``lab.core``) and the lesson or test folders; opening
    files outside its directory, except for reading the Python installation and ``lab/core``;
    sockets; creating processes (fork, exec, spawn, subprocess, os.system); signalling other
    processes; loading native code with ctypes.
 
 Then it executes the submission's source as module ``submission`` and serves calls. Messages are
-pickles framed by an 8-byte big-endian length. Parent -> child: ``("call", name, args, kwargs)``.
-Child -> parent: ``("ready", functions, printed, violations)`` after loading,
-``("ok", value, printed, violations, dropped_characters)`` or ``("error", kind, type_name, message, traceback,
-printed, violations)``. The child exits when its request pipe closes (the parent went away).
+data only (:mod:`lab.lessons.wire`: JSON and raw numeric buffers, never pickles), each a dict with
+a ``kind``. Parent -> child: ``{"kind": "call", "name", "args", "kwargs"}``. Child -> parent:
+``{"kind": "ready", "functions", "printed", "violations"}`` after loading, ``{"kind": "ok", "value",
+"printed", "violations", "dropped"}`` or ``{"kind": "error" | "load_error", "failure": {"kind",
+"type_name", "message", "traceback", "printed", "violations"}}``. The child exits when its request
+pipe closes (the parent went away).
 
 This module is imported by the parent too (for the framing helpers); it imports nothing heavy.
 """
@@ -27,11 +33,10 @@ from __future__ import annotations
 
 import io
 import os
-import pickle
-import struct
 import sys
 
-HEADER = struct.Struct(">Q")
+from lab.lessons.wire import FRAME as HEADER
+from lab.lessons.wire import WireError, decode, encode
 
 
 # --- framing (shared with the parent) -----------------------------------------------------------
@@ -379,20 +384,28 @@ def _kind_of(exc: BaseException) -> str:
     return "raised"
 
 
+def _failure(exc: BaseException, filename: str, capture: CappedText, guard: Guard) -> dict:
+    return {"kind": _kind_of(exc), "type_name": type(exc).__name__, "message": str(exc)[:2000],
+            "traceback": _student_traceback(exc, filename), "printed": capture.take(),
+            "violations": list(guard.violations)}
+
+
 def main() -> None:
     request_fd, response_fd = int(sys.argv[1]), int(sys.argv[2])
     setup_frame = read_frame(request_fd)
     if setup_frame is None:
         os._exit(3)
-    setup = pickle.loads(setup_frame)
+    setup = decode(setup_frame)
     os.chdir(setup["workdir"])
+    filename = setup["filename"]
+    with open(os.path.join(setup["workdir"], filename), "w", encoding="utf-8") as script:
+        script.write(setup["source"])  # for tracebacks that show the student's lines
     import importlib
 
     import numpy  # noqa: F401  (the values students get and return)
 
     for module in setup["preload"]:
         importlib.import_module(module)
-    filename = setup["filename"]
     capture = CappedText(int(setup["output_chars"]))
     guard = Guard(workdir=setup["workdir"], read_roots=setup["read_roots"], deny_roots=setup["deny_roots"],
                   allow_roots=setup["allow_roots"], allowed_lab=setup["allowed_lab"])
@@ -407,44 +420,42 @@ def main() -> None:
     sys.stdout = sys.stderr = capture
     sys.addaudithook(guard)
     guard.active = True
-    dumps = pickle.dumps
 
-    def reply(message: tuple) -> None:
+    def reply(message: dict) -> None:
         try:
-            payload = dumps(message, protocol=pickle.HIGHEST_PROTOCOL)
-        except Exception as exc:  # the student's value cannot be pickled
-            payload = dumps(("error", "protocol", type(exc).__name__,
-                             f"the value returned cannot be sent back to the grader ({type(exc).__name__}: "
-                             f"{str(exc)[:300]}); return numpy arrays or plain numbers", "", capture.take(),
-                             list(guard.violations)), protocol=pickle.HIGHEST_PROTOCOL)
+            payload = encode(message)
+        except (WireError, TypeError, ValueError, OverflowError) as exc:  # a value that is not data
+            payload = encode({"kind": "error", "failure": {
+                "kind": "protocol", "type_name": type(exc).__name__,
+                "message": f"the value returned cannot be sent back to the grader: it contains {str(exc)[:300]}; "
+                           f"return numpy arrays (numbers, not objects), numbers, strings, lists, tuples, dicts "
+                           f"or the lab.core values the signature names",
+                "traceback": "", "printed": capture.take(), "violations": list(guard.violations)}})
         write_frame(response_fd, payload)
-
-    def failure(exc: BaseException) -> tuple:
-        return ("error", _kind_of(exc), type(exc).__name__, str(exc)[:2000], _student_traceback(exc, filename),
-                capture.take(), list(guard.violations))
 
     try:
         code = compile(setup["source"], filename, "exec", dont_inherit=True)
         exec(code, module.__dict__)
     except BaseException as exc:  # SystemExit and KeyboardInterrupt included: report, never die silently
-        reply(("load_error",) + failure(exc)[1:])
+        reply({"kind": "load_error", "failure": _failure(exc, filename, capture, guard)})
         os._exit(0)
     functions = {name: _signature(value) for name, value in vars(module).items()
                  if callable(value) and getattr(value, "__module__", None) == "submission"}
-    reply(("ready", functions, capture.take(), list(guard.violations)))
+    reply({"kind": "ready", "functions": functions, "printed": capture.take(), "violations": list(guard.violations)})
     while True:
         frame = read_frame(request_fd)
         if frame is None:
             os._exit(0)
-        _, name, args, kwargs = pickle.loads(frame)
+        request = decode(frame)
         guard.violations.clear()
         try:
-            result = getattr(module, name)(*args, **kwargs)
+            result = getattr(module, request["name"])(*request["args"], **request["kwargs"])
         except BaseException as exc:
-            reply(failure(exc))
+            reply({"kind": "error", "failure": _failure(exc, filename, capture, guard)})
             continue
         printed = capture.take()
-        reply(("ok", result, printed, list(guard.violations), capture.last_dropped))
+        reply({"kind": "ok", "value": result, "printed": printed, "violations": list(guard.violations),
+               "dropped": capture.last_dropped})
 
 
 if __name__ == "__main__":

@@ -1,20 +1,26 @@
 """The parent side of the sandbox: run a student's file in a contained child process and call its functions.
 
 One :class:`Sandbox` is one submission: a child process (:mod:`lab.lessons.child`) started with
-``python -I`` in an empty temporary directory, a scrubbed environment, its own process group, and
-inputs and outputs passed as pickles through two pipes. The child sets its own resource limits,
-drops to ``nobody`` when started as root and the Python installation is readable by it, and
-installs an audit hook before any student code runs (see :mod:`lab.lessons.child`).
+``python -I`` inside the operating-system sandbox of :mod:`lab.lessons.isolation` (bubblewrap:
+its own PID, mount, network, IPC and UTS namespaces, a read-only root holding only the Python
+installation and ``lab/core``, an empty size-capped tmpfs as its directory, an unprivileged user),
+a scrubbed environment, and inputs and outputs passed through two pipes. The child sets its own
+resource limits and installs an audit hook before any student code runs (defence in depth).
+Without bubblewrap a sandbox refuses to start (:class:`~lab.lessons.isolation.SandboxUnavailable`)
+unless the operator allowed ``--unsafe-sandbox`` (trusted code: the audit hook alone, a temporary
+folder on the host).
 
 The parent never trusts what comes back: replies are read with a deadline (a call that does not
-return in time gets the whole process group killed), their size is capped, they are unpickled by
-an unpickler that only builds NumPy arrays, plain Python values and :mod:`lab.core.values` types,
-and typed values are rebuilt so their own checks run. What the code prints is kept up to a cap.
+return in time gets the whole namespace killed), their size is capped before anything is read,
+they are data only (:mod:`lab.lessons.wire`: JSON and numeric buffers, nothing is unpickled) and
+typed values are rebuilt through their constructors so their own checks run. A malformed reply is
+a failed call, never a crash. What the code prints is kept up to a cap.
 
 A call that does not produce a value raises :class:`SubmissionFailure` whose ``kind`` says why:
 ``raised`` (the code raised), ``blocked`` (it tried something the sandbox refuses), ``memory``,
-``timeout``, ``cpu``, ``crashed`` (the process died), ``protocol`` (a value that cannot come
-back), ``load`` (the file could not be loaded), ``missing`` (no such function).
+``timeout``, ``cpu``, ``crashed`` (the process died; the message names the signal), ``protocol``
+(a value that cannot come back, or a malformed reply), ``load`` (the file could not be loaded),
+``missing`` (no such function).
 """
 
 from __future__ import annotations
@@ -22,14 +28,12 @@ from __future__ import annotations
 import dataclasses
 import io
 import os
-import pickle
 import select
 import shutil
 import signal
 import stat
 import subprocess
 import sys
-import sysconfig
 import tempfile
 import threading
 import time
@@ -37,14 +41,21 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from lab.lessons.child import HEADER
+from lab.lessons import isolation as isolation_module
 from lab.lessons.format import Limits
+from lab.lessons.isolation import WORKDIR, Isolation, default_isolation, lab_dir, python_roots
+from lab.lessons.wire import FRAME as HEADER
+from lab.lessons.wire import WireError, decode, encode
 
 #: Modules the child imports before it locks itself down (the types step inputs use).
 PRELOAD = ("lab.core.values", "lab.core.errors")
 
 #: Parts of the lab a submission may import (values and errors the signatures use).
 ALLOWED_LAB = ("lab.core",)
+
+#: Host folders of ``--unsafe-sandbox`` runs start with this (and the server's pid), so a restart can remove
+#: what a crash left behind (:func:`remove_stale_workdirs`).
+WORKDIR_PREFIX = "vision-lab-submission-"
 
 _BOOT = ("import sys; sys.path.append({root!r}); from lab.lessons.child import main; main()")
 
@@ -103,7 +114,7 @@ class _Drain:
 
 
 def _nobody() -> tuple[int, int] | None:
-    """(uid, gid) of ``nobody`` when running as root and it can run the Python installation, else None."""
+    """``--unsafe-sandbox`` only: (uid, gid) of ``nobody`` when running as root and it can run Python, else None."""
     if os.geteuid() != 0:
         return None
     try:
@@ -112,7 +123,7 @@ def _nobody() -> tuple[int, int] | None:
         entry = pwd.getpwnam("nobody")
     except (KeyError, ImportError):
         return None
-    paths = [Path(sys.executable).resolve(), *(Path(p) for p in _python_roots()), Path(_lab_dir())]
+    paths = [Path(sys.executable).resolve(), *(Path(p) for p in python_roots()), lab_dir()]
     return (entry.pw_uid, entry.pw_gid) if all(_world_usable(p) for p in paths) else None
 
 
@@ -127,77 +138,95 @@ def _world_usable(path: Path) -> bool:
         return False
 
 
-def _python_roots() -> list[str]:
-    paths = sysconfig.get_paths()
-    roots = {paths[k] for k in ("stdlib", "platstdlib", "purelib", "platlib") if k in paths}
-    roots.update(p for p in sys.path if p and (("site-packages" in p or "dist-packages" in p) and os.path.isdir(p)
-                                                or p.startswith((sys.base_prefix, sys.prefix))))
-    return sorted(roots)
-
-
-def _lab_dir() -> str:
-    import lab
-
-    return str(Path(lab.__file__).resolve().parent)
-
-
 def sandbox_paths(extra_deny: tuple[str, ...] = ()) -> dict[str, list[str]]:
-    """What the child may read (the Python installation, lab/core) and must never read (the lab, lessons, tests)."""
-    lab_dir = Path(_lab_dir())
+    """What the audit hook lets the child read (the Python installation, lab/core) and never read (the rest)."""
+    lab = lab_dir()
     from lab.lessons.format import lessons_root
 
-    deny = [str(lab_dir), str(lessons_root()), str(lab_dir.parent / "tests"), *extra_deny]
-    allow = [str(lab_dir / "__init__.py"), str(lab_dir / "core"), os.devnull, "/dev/urandom"]
-    return {"read_roots": _python_roots(), "deny_roots": deny, "allow_roots": allow}
+    deny = [str(lab), str(lessons_root()), str(lab.parent / "tests"), *extra_deny]
+    allow = [str(lab / "__init__.py"), str(lab / "core"), str(lab / "lessons" / "child.py"),
+             str(lab / "lessons" / "wire.py"), os.devnull, "/dev/urandom"]
+    return {"read_roots": python_roots(), "deny_roots": deny, "allow_roots": allow}
 
 
-# --- unpickling what the child sends --------------------------------------------------------------
-_SAFE_GLOBALS = {
-    ("builtins", "complex"), ("builtins", "set"), ("builtins", "frozenset"), ("builtins", "bytearray"),
-    ("builtins", "slice"), ("builtins", "range"),
-    ("numpy", "ndarray"), ("numpy", "dtype"),
-    ("numpy._core.multiarray", "_reconstruct"), ("numpy.core.multiarray", "_reconstruct"),
-    ("numpy._core.multiarray", "scalar"), ("numpy.core.multiarray", "scalar"),
-    ("numpy._core.numeric", "_frombuffer"), ("numpy.core.numeric", "_frombuffer"),
-}
+def remove_stale_workdirs(root: str | None = None) -> int:
+    """Remove the ``--unsafe-sandbox`` folders of processes that are gone (a crash); returns how many."""
+    removed = 0
+    base = Path(root or tempfile.gettempdir())
+    for path in base.glob(WORKDIR_PREFIX + "*"):
+        owner = path.name[len(WORKDIR_PREFIX):].split("-", 1)[0]
+        if owner.isdigit() and (int(owner) == os.getpid() or _process_alive(int(owner))):
+            continue
+        shutil.rmtree(path, ignore_errors=True)
+        removed += 1
+    return removed
 
 
-class _SafeUnpickler(pickle.Unpickler):
-    """Builds only NumPy arrays and scalars, plain Python values and lab.core value types."""
-
-    def find_class(self, module: str, name: str) -> Any:
-        from lab.core.values import VALUE_TYPES
-
-        if (module, name) in _SAFE_GLOBALS:
-            return super().find_class(module, name)
-        if module == "lab.core.values" and name in VALUE_TYPES:
-            return VALUE_TYPES[name]
-        if module == "numpy.dtypes" and name.endswith("DType"):
-            return super().find_class(module, name)
-        raise pickle.UnpicklingError(f"a {module}.{name}")
+def _process_alive(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:
+        return True
+    return True
 
 
-def _rebuild(value: Any, depth: int = 0) -> Any:
-    """Typed values rebuilt through their constructors (unpickling skips their checks)."""
-    from lab.core.values import VALUE_TYPES
-
-    if depth > 20:
-        raise ValueError("a value nested too deeply")
-    if type(value) in VALUE_TYPES.values():
-        return type(value)(**{f.name: _rebuild(getattr(value, f.name), depth + 1) for f in dataclasses.fields(value)})
-    if isinstance(value, tuple):
-        return tuple(_rebuild(v, depth + 1) for v in value)
-    if isinstance(value, list):
-        return [_rebuild(v, depth + 1) for v in value]
-    if isinstance(value, dict):
-        return {k: _rebuild(v, depth + 1) for k, v in value.items()}
-    return value
+def _signal_name(number: int) -> str:
+    try:
+        return signal.Signals(number).name
+    except ValueError:
+        return f"signal {number}"
 
 
-def decode_reply(payload: bytes) -> tuple:
-    message = _SafeUnpickler(io.BytesIO(payload)).load()
-    if not isinstance(message, tuple) or not message or not isinstance(message[0], str):
-        raise pickle.UnpicklingError("a malformed reply")
+# --- reading the child's replies ----------------------------------------------------------------
+def _text(message: dict[str, Any], key: str, limit: int = 200_000) -> str:
+    value = message.get(key, "")
+    if not isinstance(value, str):
+        raise WireError(f"a reply whose {key!r} is not text")
+    return value[:limit]
+
+
+def _texts(message: dict[str, Any], key: str) -> tuple[str, ...]:
+    value = message.get(key, [])
+    if not isinstance(value, list) or not all(isinstance(v, str) for v in value):
+        raise WireError(f"a reply whose {key!r} is not a list of text")
+    return tuple(v[:500] for v in value[:50])
+
+
+def _failure_of(message: dict[str, Any]) -> SubmissionFailure:
+    failure = message.get("failure")
+    if not isinstance(failure, dict):
+        raise WireError("an error reply without its failure")
+    kind = _text(failure, "kind", 20)
+    if kind not in ("raised", "blocked", "memory", "protocol"):
+        raise WireError(f"a failure of unknown kind {kind!r}")
+    return SubmissionFailure(kind, _text(failure, "message", 4000), type_name=_text(failure, "type_name", 200),
+                             traceback=_text(failure, "traceback", 8000), printed=_text(failure, "printed"),
+                             violations=_texts(failure, "violations"))
+
+
+def _functions_of(message: dict[str, Any]) -> dict[str, dict[str, Any]]:
+    functions = message.get("functions")
+    if not isinstance(functions, dict) or len(functions) > 1000:
+        raise WireError("a ready reply without its functions")
+    checked: dict[str, dict[str, Any]] = {}
+    for name, signature in functions.items():
+        if not (isinstance(name, str) and isinstance(signature, dict)
+                and all(isinstance(signature.get(k), list) and all(isinstance(v, str) for v in signature[k])
+                        for k in ("positional", "keyword"))
+                and isinstance(signature.get("varargs"), bool)):
+            raise WireError("a malformed function signature")
+        checked[name] = {"positional": list(signature["positional"]), "keyword": list(signature["keyword"]),
+                         "varargs": signature["varargs"]}
+    return checked
+
+
+def decode_reply(payload: bytes) -> dict[str, Any]:
+    """A child's reply, checked to be a dict with a known ``kind``; raises :class:`WireError`."""
+    message = decode(payload)
+    if not isinstance(message, dict) or message.get("kind") not in ("ready", "load_error", "ok", "error"):
+        raise WireError("a malformed reply")
     return message
 
 
@@ -206,28 +235,35 @@ class Sandbox:
     """A student's file loaded in a contained child process; :meth:`call` runs one of its functions.
 
     Use as a context manager or call :meth:`close`. After the child dies (a timeout, the CPU
-    limit, a crash) the next :meth:`call` starts a fresh one.
+    limit, a crash) the next :meth:`call` starts a fresh one. ``isolation`` defaults to
+    :func:`~lab.lessons.isolation.default_isolation` (bubblewrap unless the operator allowed
+    ``--unsafe-sandbox``); :meth:`start` raises
+    :class:`~lab.lessons.isolation.SandboxUnavailable` when it cannot run here.
     """
 
     def __init__(self, source: str, *, limits: Limits | None = None, filename: str = "submission.py",
-                 preload: tuple[str, ...] = PRELOAD, deny: tuple[str, ...] = ()) -> None:
+                 preload: tuple[str, ...] = PRELOAD, deny: tuple[str, ...] = (),
+                 isolation: Isolation | None = None) -> None:
         self.source = source
         self.limits = limits or Limits()
         self.filename = filename
         self.preload = preload
         self.deny = deny
+        self.isolation = isolation or default_isolation()
         self.functions: dict[str, dict[str, Any]] = {}
         self.load_printed = ""
         self.starts = 0
         self.pids: list[int] = []  # every child started (tests check none outlives the sandbox)
         self._process: subprocess.Popen | None = None
-        self._workdir: str | None = None
+        self._workdir: str | None = None  # the host folder (--unsafe-sandbox only)
         self._request_fd: int | None = None
         self._response_fd: int | None = None
         self._drain: _Drain | None = None
         self._drain_thread: threading.Thread | None = None
         self._killed = False
         self._timeout = 0.0
+        self._cpu_seconds = 0.0
+        self._max_rss_mb = 0.0
 
     # --- lifecycle ---------------------------------------------------------------------------
     def __enter__(self) -> Sandbox:
@@ -244,34 +280,48 @@ class Sandbox:
     def pid(self) -> int | None:
         return self._process.pid if self._process is not None else None
 
+    def _command(self, request_read: int, response_write: int) -> tuple[list[str], dict[str, str], str, str]:
+        """The child's command line, environment, working directory inside and outside."""
+        threads = "1"
+        bwrap = self.isolation.mode == "bwrap"
+        if bwrap:
+            inside, outside = WORKDIR, "/"
+        else:
+            outside = inside = tempfile.mkdtemp(prefix=f"{WORKDIR_PREFIX}{os.getpid()}-")
+            self._workdir = outside
+            nobody = _nobody()
+            if nobody is not None:
+                os.chown(outside, *nobody)
+            os.chmod(outside, 0o700)
+        env = {"PATH": "/usr/bin:/bin", "HOME": inside, "TMPDIR": inside, "LANG": "C.UTF-8", "LC_ALL": "C.UTF-8",
+               "OMP_NUM_THREADS": threads, "OPENBLAS_NUM_THREADS": threads, "MKL_NUM_THREADS": threads,
+               "NUMEXPR_NUM_THREADS": threads, "OPENCV_FOR_THREADS_NUM": threads, "NUMBA_NUM_THREADS": threads}
+        command = [sys.executable, "-I", "-B", "-c", _BOOT.format(root=str(lab_dir().parent)), str(request_read),
+                   str(response_write)]
+        if bwrap:
+            command = isolation_module.bwrap_command(command, isolation=self.isolation, env=env)
+            env = {"PATH": env["PATH"], "LANG": env["LANG"]}
+        return command, env, inside, outside
+
     def start(self, *, timeout: float | None = None) -> dict[str, dict[str, Any]]:
         """Start the child and load the file; returns its functions, raises SubmissionFailure(kind="load")."""
+        isolation_module.check(self.isolation)
         self.close()
         self.starts += 1
         timeout = self.limits.call_timeout_s if timeout is None else timeout
         deadline = time.monotonic() + max(timeout, 0.0)
         self._timeout = timeout
-        workdir = tempfile.mkdtemp(prefix="vision-lab-submission-")
-        self._workdir = workdir
-        script = Path(workdir) / self.filename
-        script.write_text(self.source, encoding="utf-8")
-        nobody = _nobody()
-        if nobody is not None:
-            os.chown(workdir, *nobody)
-            os.chown(script, *nobody)
-        os.chmod(workdir, 0o700)
         request_read, request_write = os.pipe()
         response_read, response_write = os.pipe()
-        threads = "1"
-        env = {"PATH": "/usr/bin:/bin", "HOME": workdir, "TMPDIR": workdir, "LANG": "C.UTF-8", "LC_ALL": "C.UTF-8",
-               "OMP_NUM_THREADS": threads, "OPENBLAS_NUM_THREADS": threads, "MKL_NUM_THREADS": threads,
-               "NUMEXPR_NUM_THREADS": threads, "OPENCV_FOR_THREADS_NUM": threads}
-        root = str(Path(_lab_dir()).parent)
         try:
+            command, env, inside, outside = self._command(request_read, response_write)
             self._process = subprocess.Popen(
-                [sys.executable, "-I", "-c", _BOOT.format(root=root), str(request_read), str(response_write)],
-                stdin=subprocess.DEVNULL, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, cwd=workdir, env=env,
-                pass_fds=(request_read, response_write), start_new_session=True, close_fds=True)
+                command, stdin=subprocess.DEVNULL, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, cwd=outside,
+                env=env, pass_fds=(request_read, response_write), start_new_session=True, close_fds=True)
+        except BaseException:
+            for fd in (request_write, response_read):
+                os.close(fd)
+            raise
         finally:
             os.close(request_read)
             os.close(response_write)
@@ -279,36 +329,68 @@ class Sandbox:
         self._request_fd, self._response_fd = request_write, response_read
         os.set_blocking(request_write, False)
         self._killed = False
+        self._cpu_seconds = self._max_rss_mb = 0.0
         self._drain = _Drain(int(self.limits.output_kb * 1024))
         self._drain_thread = threading.Thread(target=self._drain.run, args=(self._process.stdout,), daemon=True,
                                               name="sandbox-output")
         self._drain_thread.start()
         limits = {k: float(v) for k, v in dataclasses.asdict(self.limits).items()}
-        setup = {"workdir": workdir, "source": self.source, "filename": self.filename, "preload": list(self.preload),
-                 "limits": limits, "nobody": nobody, "allowed_lab": list(ALLOWED_LAB),
-                 "output_chars": int(self.limits.output_kb * 1024), **sandbox_paths(self.deny)}
+        setup = {"workdir": inside, "source": self.source, "filename": self.filename, "preload": list(self.preload),
+                 "limits": limits, "nobody": None if self.isolation.mode == "bwrap" else _nobody(),
+                 "allowed_lab": list(ALLOWED_LAB), "output_chars": int(self.limits.output_kb * 1024),
+                 **sandbox_paths(self.deny)}
         try:
-            self._send(pickle.dumps(setup, protocol=pickle.HIGHEST_PROTOCOL), deadline)
+            self._send(encode(setup), deadline)
             reply = self._receive(deadline, what="loading your file")
+            if reply["kind"] == "load_error":
+                failure = _failure_of(reply)
+            elif reply["kind"] == "ready":
+                self.functions = _functions_of(reply)
+                self.load_printed = _text(reply, "printed")
+                return self.functions
+            else:
+                raise WireError("a reply out of turn")
         except SubmissionFailure as failure:
+            self.kill()
             raise SubmissionFailure("load", f"your file could not be loaded: {failure.message}",
                                     printed=failure.printed) from None
-        if reply[0] == "load_error":
-            _, kind, type_name, message, traceback, printed, violations = reply
-            self.close()
-            reason = "it tried something the sandbox does not allow" if kind == "blocked" else f"it raised {type_name}"
-            raise SubmissionFailure("load", f"your file could not be loaded: {reason}: {message}",
-                                    type_name=type_name, traceback=traceback, printed=printed,
-                                    violations=tuple(violations))
-        if reply[0] != "ready" or not isinstance(reply[1], dict):
+        except WireError as exc:
             self.kill()
-            raise SubmissionFailure("load", "your file could not be loaded: the sandbox answered out of turn")
-        self.functions = reply[1]
-        self.load_printed = reply[2] if isinstance(reply[2], str) else ""
-        return self.functions
+            raise SubmissionFailure("load", f"your file could not be loaded: the sandbox sent {exc}") from None
+        self.close()
+        reason = ("it tried something the sandbox does not allow" if failure.kind == "blocked"
+                  else f"it raised {failure.type_name}")
+        raise SubmissionFailure("load", f"your file could not be loaded: {reason}: {failure.message}",
+                                type_name=failure.type_name, traceback=failure.traceback, printed=failure.printed,
+                                violations=failure.violations)
+
+    def _reap(self, timeout: float) -> int | None:
+        """Wait up to ``timeout`` s for the child; its exit code (negative: a signal), with CPU time and peak memory."""
+        process = self._process
+        if process is None:
+            return None
+        if process.returncode is not None:
+            return process.returncode
+        end = time.monotonic() + timeout
+        while True:
+            try:
+                pid, status, usage = os.wait4(process.pid, os.WNOHANG)
+            except ChildProcessError:
+                return process.poll()
+            if pid:
+                code = os.waitstatus_to_exitcode(status)
+                if self.isolation.mode == "bwrap" and code > 128:
+                    code = 128 - code  # bubblewrap exits with 128 + the signal that ended the child
+                process.returncode = code
+                self._cpu_seconds = usage.ru_utime + usage.ru_stime
+                self._max_rss_mb = usage.ru_maxrss / 1024
+                return code
+            if time.monotonic() >= end:
+                return None
+            time.sleep(0.01)
 
     def kill(self) -> None:
-        """Kill the child's whole process group (it has its own session)."""
+        """Kill the child's whole process group; under bubblewrap its namespace dies with it."""
         process = self._process
         if process is None:
             return
@@ -317,10 +399,7 @@ class Sandbox:
             os.killpg(process.pid, signal.SIGKILL)
         except (ProcessLookupError, PermissionError):
             pass
-        try:
-            process.wait(timeout=10)
-        except subprocess.TimeoutExpired:  # pragma: no cover - a zombie the kernel holds on to
-            pass
+        self._reap(10)
 
     def close(self) -> None:
         """Stop the child and remove its directory (safe to call twice)."""
@@ -333,16 +412,12 @@ class Sandbox:
                     except OSError:
                         pass
                     setattr(self, fd_name, None)
-            if self._process.poll() is None:
-                try:
-                    self._process.wait(timeout=0.5)  # it exits on its own when its request pipe closes
-                except subprocess.TimeoutExpired:
-                    self.kill()
-            else:
-                try:
-                    os.killpg(self._process.pid, signal.SIGKILL)  # anything it left behind in its group
-                except (ProcessLookupError, PermissionError):
-                    pass
+            if self._reap(0.5) is None:  # it exits on its own when its request pipe closes
+                self.kill()
+            try:
+                os.killpg(self._process.pid, signal.SIGKILL)  # anything it left behind in its group
+            except (ProcessLookupError, PermissionError):
+                pass
             if self._process.stdout is not None:
                 self._process.stdout.close()
             if self._drain_thread is not None:
@@ -370,30 +445,28 @@ class Sandbox:
         deadline = started + max(timeout, 0.0)
         self._timeout = timeout
         raw_before = self._drain.total if self._drain is not None else 0
-        payload = pickle.dumps(("call", name, tuple(args), dict(kwargs or {})), protocol=pickle.HIGHEST_PROTOCOL)
-        self._send(payload, deadline)
+        self._send(encode({"kind": "call", "name": name, "args": tuple(args), "kwargs": dict(kwargs or {})}), deadline)
         reply = self._receive(deadline, what=f"{name}()")
         seconds = time.monotonic() - started
-        if reply[0] == "ok" and len(reply) == 5:
-            _, value, printed, violations, dropped = reply
-            try:
-                value = _rebuild(value)
-            except Exception as exc:  # a typed value whose own checks refuse it
-                raise SubmissionFailure("protocol", f"{name} returned an invalid value: {exc}", printed=printed,
-                                        violations=tuple(violations)) from None
-            raw = (self._drain.total if self._drain is not None else 0) - raw_before
-            cap = int(self.limits.output_kb * 1024)
-            flooded = int(dropped) + max(0, raw - cap)
-            if raw:
-                printed = f"{printed}\n{self.output()}" if printed else self.output()
-            return CallResult(value, printed, tuple(violations), seconds, flooded)
-        if reply[0] == "error" and len(reply) == 7:
-            _, kind, type_name, message, traceback, printed, violations = reply
-            raise SubmissionFailure(str(kind), str(message), type_name=str(type_name), traceback=str(traceback),
-                                    printed=str(printed), violations=tuple(violations))
-        self.kill()
-        raise SubmissionFailure("protocol", "the sandbox answered out of turn (did your code write to the "
-                                            "grader's pipe?)")
+        try:
+            if reply["kind"] == "error":
+                raise _failure_of(reply)
+            if reply["kind"] != "ok" or "value" not in reply:
+                raise WireError("a reply out of turn")
+            printed, violations = _text(reply, "printed"), _texts(reply, "violations")
+            dropped = reply.get("dropped", 0)
+            if not isinstance(dropped, int) or isinstance(dropped, bool):
+                raise WireError("a malformed reply")
+        except WireError as exc:
+            self.kill()
+            raise SubmissionFailure("protocol", f"{name}() got a malformed reply from the sandbox ({exc}); did your "
+                                                f"code write to the grader's pipe?") from None
+        raw = (self._drain.total if self._drain is not None else 0) - raw_before
+        cap = int(self.limits.output_kb * 1024)
+        flooded = max(0, dropped) + max(0, raw - cap)
+        if raw:
+            printed = f"{printed}\n{self.output()}" if printed else self.output()
+        return CallResult(reply["value"], printed, violations, seconds, flooded)
 
     def _send(self, payload: bytes, deadline: float) -> None:
         data = memoryview(HEADER.pack(len(payload)) + payload)
@@ -415,7 +488,7 @@ class Sandbox:
                 raise self._death() from None
             data = data[written:]
 
-    def _receive(self, deadline: float, *, what: str) -> tuple:
+    def _receive(self, deadline: float, *, what: str) -> dict[str, Any]:
         header = self._read(HEADER.size, deadline, what)
         (size,) = HEADER.unpack(header)
         limit = int(self.limits.result_mb * 2**20)
@@ -426,11 +499,11 @@ class Sandbox:
         payload = self._read(size, deadline, what)
         try:
             return decode_reply(payload)
-        except Exception as exc:
-            reason = str(exc) if isinstance(exc, pickle.UnpicklingError) else type(exc).__name__
-            raise SubmissionFailure("protocol", f"{what} returned a value the grader does not accept ({reason}); "
-                                                f"return numpy arrays, numbers, or the lab.core values the "
-                                                f"signature names") from None
+        except WireError as exc:
+            self.kill()
+            raise SubmissionFailure("protocol", f"{what} returned a value the grader does not accept ({exc}); "
+                                                f"return numpy arrays of numbers, numbers, or the lab.core values "
+                                                f"the signature names") from None
 
     def _read(self, size: int, deadline: float, what: str) -> bytes:
         fd = self._response_fd
@@ -456,27 +529,24 @@ class Sandbox:
                                             f"loop, or much slower than it needs to be)", printed=self.output())
 
     def _death(self) -> SubmissionFailure:
-        """Why the child went away, from its exit status."""
-        process = self._process
-        code = None
-        if process is not None:
-            try:
-                code = process.wait(timeout=5)
-            except subprocess.TimeoutExpired:
-                self.kill()
-                code = process.returncode
+        """Why the child went away, from its exit status, CPU time and peak memory."""
+        code = self._reap(5)
+        if code is None:
+            self.kill()
+            code = self._process.returncode if self._process is not None else None
         printed = self.output()
         if code is not None and code < 0:
             sig = -code
-            if sig in (signal.SIGXCPU, signal.SIGKILL) and not self._killed:
-                return SubmissionFailure("cpu", f"your code used more than {self.limits.cpu_seconds:g} s of CPU "
-                                                f"time and was stopped", printed=printed)
-            if sig in (signal.SIGSEGV, signal.SIGBUS, signal.SIGABRT):
-                return SubmissionFailure("crashed", f"the process running your code crashed "
-                                                    f"({signal.Signals(sig).name}); running out of memory (limit "
-                                                    f"{self.limits.memory_mb:g} MB) inside a library does this",
-                                         printed=printed)
-            name = signal.Signals(sig).name if sig in signal.Signals._value2member_map_ else str(sig)
-            return SubmissionFailure("crashed", f"the process running your code was killed ({name})", printed=printed)
+            cpu_limit = self.limits.cpu_seconds
+            if sig == signal.SIGXCPU or (sig == signal.SIGKILL and not self._killed and self._cpu_seconds >= cpu_limit):
+                return SubmissionFailure("cpu", f"your code used more than {cpu_limit:g} s of CPU time and was "
+                                                f"stopped ({_signal_name(sig)})", printed=printed)
+            message = f"the process running your code was killed by {_signal_name(sig)}"
+            if sig in (signal.SIGSEGV, signal.SIGBUS, signal.SIGABRT, signal.SIGKILL):
+                near = self._max_rss_mb >= 0.8 * self.limits.memory_mb
+                message += (f"; it used {self._max_rss_mb:.0f} MB at most"
+                            + (", near" if near else ", and") + f" the memory limit is {self.limits.memory_mb:g} MB"
+                            + ": running out of memory inside a library ends a process this way")
+            return SubmissionFailure("crashed", message, printed=printed)
         return SubmissionFailure("crashed", f"your code ended the process running it (exit status {code}); do not "
                                             f"call exit() or os._exit()", printed=printed)

@@ -48,7 +48,7 @@ CASES = {
     "exits": (["ended the process running it"], False),
     "huge_result": (["MB of data; the limit is 1 MB"], False),
     "unpicklable": (["cannot be sent back", "generator"], False),
-    "evil_pickle": (["does not accept (a posix.system)"], False),
+    "evil_pickle": (["cannot be sent back", "submission.Evil"], False),
     "syntax_error": (["could not be loaded", "SyntaxError", "line 6"], True),
     "import_time_loop": (["could not be loaded", "did not finish within the time limit"], True),
     "imports_reference_at_top": (["could not be loaded", "importing 'lab.modules.calibration' is not allowed"], True),

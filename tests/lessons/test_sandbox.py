@@ -2,6 +2,9 @@
 
 from __future__ import annotations
 
+import os
+import subprocess
+import tempfile
 import time
 from pathlib import Path
 
@@ -10,7 +13,8 @@ import pytest
 
 from lab.core import Image, ImageSet, Points2D
 from lab.lessons.format import Limits
-from lab.lessons.sandbox import Sandbox, SubmissionFailure
+from lab.lessons.isolation import WORKDIR, Isolation
+from lab.lessons.sandbox import WORKDIR_PREFIX, Sandbox, SubmissionFailure, remove_stale_workdirs
 
 FAST = Limits(call_timeout_s=3.0, cpu_seconds=5.0, memory_mb=300.0, output_kb=4.0, result_mb=1.0, file_size_mb=1.0)
 
@@ -90,10 +94,11 @@ def test_the_child_runs_scrubbed_in_an_empty_directory_with_limits(sandbox, monk
     facts = sandbox.call("facts").value
     assert "VISION_LAB_SECRET" not in facts["env"] and set(facts["env"]) <= {
         "PATH", "HOME", "TMPDIR", "LANG", "LC_ALL", "OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS",
-        "NUMEXPR_NUM_THREADS", "OPENCV_FOR_THREADS_NUM", "LC_CTYPE",
+        "NUMEXPR_NUM_THREADS", "OPENCV_FOR_THREADS_NUM", "NUMBA_NUM_THREADS", "LC_CTYPE",
+        "PWD",  # set by bubblewrap's --chdir
         "LD_LIBRARY_PATH"}  # set by OpenCV's own start-up inside the child, not inherited
-    assert facts["files"] == ["submission.py"] and facts["cwd"] == facts["env"]["HOME"]
-    assert Path(facts["cwd"]).name.startswith("vision-lab-submission-")
+    assert facts["files"] == ["submission.py"] and facts["cwd"] == facts["env"]["HOME"] == WORKDIR
+    assert facts["uid"] != 0
     limits = facts["limits"]
     assert limits["RLIMIT_CORE"] == (0, 0)
     assert limits["RLIMIT_FSIZE"][0] == 2**20
@@ -109,12 +114,41 @@ def test_the_parent_environment_does_not_leak(monkeypatch):
         assert "VISION_LAB_SECRET" not in box.call("facts").value["env"]
 
 
-def test_files_in_its_own_directory_are_fine_and_removed_with_it():
+def _host_workdirs() -> set[Path]:
+    return set(Path(tempfile.gettempdir()).glob(WORKDIR_PREFIX + "*"))
+
+
+def test_files_in_its_own_directory_are_fine_and_gone_with_it():
+    before = _host_workdirs()
     with Sandbox(SOURCE, limits=FAST) as box:
         assert box.call("write_here").value == "mine"
+        assert "notes.txt" in box.call("facts").value["files"]
+        assert _host_workdirs() == before  # a tmpfs inside the sandbox, nothing on the host
+    with Sandbox(SOURCE, limits=FAST) as box:
+        assert box.call("facts").value["files"] == ["submission.py"]  # a fresh directory every time
+
+
+def test_unsafe_mode_uses_a_host_folder_and_removes_it():
+    with Sandbox(SOURCE, limits=FAST, isolation=Isolation(mode="unsafe")) as box:
+        assert box.call("write_here").value == "mine"
         workdir = Path(box.call("facts").value["cwd"])
-        assert (workdir / "notes.txt").exists()
+        assert workdir.name.startswith(WORKDIR_PREFIX) and (workdir / "notes.txt").exists()
     assert not workdir.exists()
+
+
+def test_stale_unsafe_folders_of_dead_processes_are_removed(tmp_path):
+    dead = _dead_pid()
+    (tmp_path / f"{WORKDIR_PREFIX}{dead}-abc").mkdir()
+    (tmp_path / f"{WORKDIR_PREFIX}{dead}-abc" / "submission.py").write_text("secret = 1\n")
+    (tmp_path / f"{WORKDIR_PREFIX}{os.getpid()}-mine").mkdir()
+    assert remove_stale_workdirs(str(tmp_path)) == 1
+    assert [p.name for p in tmp_path.iterdir()] == [f"{WORKDIR_PREFIX}{os.getpid()}-mine"]
+
+
+def _dead_pid() -> int:
+    process = subprocess.Popen(["true"])
+    process.wait()
+    return process.pid
 
 
 def test_a_timeout_kills_the_process_group_and_the_next_call_starts_afresh(sandbox):
