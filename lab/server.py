@@ -91,12 +91,27 @@ def serve(*, host: str = "127.0.0.1", port: int = 8000, viewer_port: int = 8080,
     store, viewer, viewer_url, api_server = _build(host, port, viewer_port, store, modules, log_level, data_root)
     print(f"Vision Lab: landing page and REST API on http://{_display_host(host)}:{port} "
           f"(OpenAPI at /docs), 3D viewer on {viewer.url}", flush=True)
+    print(f"Grading: {sandbox_status()}", flush=True)
     try:
         api_server.run()  # uvicorn handles SIGINT / SIGTERM: it shuts down and re-raises the signal
     except KeyboardInterrupt:
         pass
     finally:
         viewer.stop()
+
+
+def sandbox_status() -> str:
+    """One line on how submissions will be graded (the start-up probe of :mod:`lab.lessons.isolation`)."""
+    from lab.lessons import isolation
+
+    chosen = isolation.default_isolation()
+    if chosen.mode == "unsafe":
+        return "--unsafe-sandbox: submissions run with Python's audit hook only (trusted code only)"
+    try:
+        isolation.check(chosen)
+    except isolation.SandboxUnavailable as exc:
+        return f"off, submissions are refused (503): {exc.reason}"
+    return "each submission in its own bubblewrap sandbox"
 
 
 def start(*, host: str = "127.0.0.1", port: int = 8000, viewer_port: int = 8080, store: SessionStore | None = None,

@@ -39,6 +39,7 @@ from lab.core.errors import LabError, StepFailed
 from lab.core.pipeline import Loaded, Pipeline, Session, open_session
 from lab.core.step import StepSpec
 from lab.lessons import checks as checks_module
+from lab.lessons import isolation
 from lab.lessons.format import Check, CheckDataset, Lesson, Limits, Task, parameters_of_spec
 from lab.lessons.sandbox import CallResult, Sandbox, SubmissionFailure
 
@@ -669,6 +670,8 @@ def grade(lesson: Lesson, source: str | None = None, *, reference: bool = False,
     """Grade ``source`` (a student's file) or, with ``reference``, the lab's own steps."""
     if not reference and source is None:
         raise LabError("submission", "give the submission's source, or grade the reference")
+    if not reference:
+        isolation.check(isolation.default_isolation())  # SandboxUnavailable (HTTP 503, CLI exit 2), never a 0 score
     limits = limits or lesson.limits
     seeds = draw_seeds(lesson, seed)
     submission: Submission = ReferenceSubmission() if reference else SandboxedSubmission(source or "", limits)

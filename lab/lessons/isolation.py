@@ -43,6 +43,8 @@ import threading
 from dataclasses import dataclass
 from pathlib import Path
 
+from lab.core.errors import LabError
+
 #: The submission's working directory inside the sandbox (a tmpfs).
 WORKDIR = "/submission"
 
@@ -62,8 +64,14 @@ FIX = ("install bubblewrap (Debian/Ubuntu: apt-get install bubblewrap; Fedora: d
        "or, for trusted code only, pass --unsafe-sandbox")
 
 
-class SandboxUnavailable(RuntimeError):
-    """The operating-system sandbox cannot run here; untrusted code is not graded."""
+class SandboxUnavailable(LabError):
+    """The operating-system sandbox cannot run here, so untrusted code is not graded (HTTP 503; CLI exit 2)."""
+
+    status = 503
+    kind = "sandbox_unavailable"
+
+    def __init__(self, reason: str) -> None:
+        super().__init__("sandbox", reason)
 
 
 @dataclass(frozen=True)

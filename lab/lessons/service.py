@@ -17,13 +17,18 @@
 
 from __future__ import annotations
 
+import logging
 import os
 from typing import Any
 
+from lab.lessons import isolation
 from lab.lessons.format import LessonCatalog
+from lab.lessons.sandbox import remove_stale_workdirs
 from lab.lessons.store import GradeFunction, Submission, SubmissionQueue, WorkerPool
 
 DEFAULT_MAX_SUBMISSION_BYTES = 256 * 1024
+
+log = logging.getLogger("lab.lessons")
 
 
 class LessonService:
@@ -38,6 +43,8 @@ class LessonService:
         self.max_submission_bytes = int(max_submission_bytes)
         self.pool = WorkerPool(self.queue, grade or self._grade, workers=workers, poll_s=poll_s)
         self.started = False
+        self.needs_sandbox = grade is None  # an injected grade function (tests) runs no student code
+        self.sandbox_problem: str | None = None
 
     @classmethod
     def from_env(cls, environ: dict[str, str] | None = None) -> LessonService:
@@ -57,11 +64,27 @@ class LessonService:
         return grade(lesson, submission.source).results_json()
 
     def start(self) -> int:
-        """Requeue what a killed server left running, start the workers; returns how many were requeued."""
+        """Remove what a crash left in the temporary folder, requeue what a killed server left running, check
+        the sandbox and start the workers; returns how many were requeued.
+
+        Without a working sandbox (:func:`lab.lessons.isolation.check`) no worker starts: queued
+        submissions stay queued (nothing is lost or scored 0) and :meth:`submit` answers
+        :class:`~lab.lessons.isolation.SandboxUnavailable` (HTTP 503) naming the fix.
+        """
         if self.started:
             return 0
+        removed = remove_stale_workdirs()
+        if removed:
+            log.info("removed %d submission folders left by a crash", removed)
         requeued = self.queue.requeue_running()
-        self.pool.start()
+        if self.needs_sandbox:
+            try:
+                isolation.check(isolation.default_isolation())
+            except isolation.SandboxUnavailable as exc:
+                self.sandbox_problem = exc.reason
+                log.warning("grading is off: %s", exc.reason)
+        if self.sandbox_problem is None:
+            self.pool.start()
         self.started = True
         return requeued
 
@@ -70,6 +93,8 @@ class LessonService:
         self.started = False
 
     def submit(self, lesson: str, filename: str, source: str, *, student: str = "") -> str:
+        if self.sandbox_problem is not None:
+            raise isolation.SandboxUnavailable(self.sandbox_problem)
         submission_id = self.queue.submit(lesson, filename, source, student=student)
         self.pool.wake()
         return submission_id
