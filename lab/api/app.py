@@ -27,7 +27,7 @@ from lab.api import sessions as sessions_router
 from lab.api import values as values_router
 from lab.api.deps import ModuleCatalog
 from lab.api.errors import BodyLimitMiddleware, LabJSONResponse, register_error_handlers
-from lab.api.runs import RunRegistry
+from lab.api.runs import DEFAULT_QUEUE, DEFAULT_WORKERS, RunPool, RunRegistry
 from lab.core.pipeline import Pipeline
 from lab.core.store import SessionStore
 
@@ -66,7 +66,9 @@ def _lessons_router() -> APIRouter | None:
 
 def create_app(store: SessionStore | None = None, *, modules: Callable[[str], Pipeline] | None = None,
                module_names: Sequence[str] | None = None, viewer_url: str | None = None,
-               max_upload_bytes: int = DEFAULT_MAX_UPLOAD_BYTES, extra_routers: Iterable[APIRouter] = ()) -> FastAPI:
+               max_upload_bytes: int = DEFAULT_MAX_UPLOAD_BYTES, extra_routers: Iterable[APIRouter] = (),
+               workers: int = DEFAULT_WORKERS, queued_runs: int = DEFAULT_QUEUE,
+               trust_forwarded_for: bool = False) -> FastAPI:
     """Build the REST API and landing page.
 
     Args:
@@ -76,6 +78,10 @@ def create_app(store: SessionStore | None = None, *, modules: Callable[[str], Pi
         viewer_url: where the viewer runs; linked from the landing page and ``/api/health``.
         max_upload_bytes: largest request body accepted (413 above it, refused before it is read).
         extra_routers: more routers to include (``lab.api.lessons.router`` is included when it exists).
+        workers: threads that run steps and load datasets (at most that many at once).
+        queued_runs: runs and loads that may wait for a worker; more are refused with 429 and Retry-After.
+        trust_forwarded_for: count sessions per client by the last ``X-Forwarded-For`` entry (set it only
+            behind one trusted proxy); default: by the socket's peer address.
     """
     if max_upload_bytes < 1:
         raise ValueError("max_upload_bytes must be positive")
@@ -86,6 +92,8 @@ def create_app(store: SessionStore | None = None, *, modules: Callable[[str], Pi
     app.state.store = store if store is not None else SessionStore()
     app.state.catalog = ModuleCatalog.of(modules, module_names)
     app.state.runs = RunRegistry()
+    app.state.pool = RunPool(workers=workers, queue=queued_runs)
+    app.state.trust_forwarded_for = bool(trust_forwarded_for)
     app.state.viewer_url = viewer_url
     app.state.max_upload_bytes = int(max_upload_bytes)
     register_error_handlers(app)
@@ -99,13 +107,17 @@ def create_app(store: SessionStore | None = None, *, modules: Callable[[str], Pi
         app.include_router(router)
 
     @app.get("/api/health", tags=["service"], summary="Health and server facts",
-             description="`status` is `ok` when the API answers; also the version, live sessions, the served "
-                         "modules and `viewer_url` (null when no viewer runs).")
-    def health(request: Request) -> LabJSONResponse:
+             description="`status` is `ok` when the API answers; also the version, live sessions and their caps, "
+                         "the worker pool (`runs`: workers, running, queued, max_queued), the served modules and "
+                         "`viewer_url` (null when no viewer runs). Answered in the event loop, never waiting for a "
+                         "worker, so it stays fast while steps run.")
+    async def health(request: Request) -> LabJSONResponse:
         state = request.app.state
         return LabJSONResponse({"status": "ok", "version": lab.__version__, "sessions": len(state.store),
-                "max_sessions": state.store.max_sessions, "modules": list(state.catalog.names),
-                "viewer_url": state.viewer_url, "max_upload_bytes": state.max_upload_bytes})
+                "max_sessions": state.store.max_sessions,
+                "max_sessions_per_client": state.store.max_sessions_per_client, "runs": state.pool.stats(),
+                "modules": list(state.catalog.names), "viewer_url": state.viewer_url,
+                "max_upload_bytes": state.max_upload_bytes})
 
     @app.get("/", include_in_schema=False)
     def landing_page() -> Any:

@@ -1,7 +1,8 @@
 """FastAPI dependencies shared by the routers (and by routers other helpers add, e.g. lessons).
 
 All live state is in ``app.state.store`` (a :class:`~lab.core.store.SessionStore` the viewer
-shares); ``app.state.catalog`` knows the modules, ``app.state.runs`` tracks running steps.
+shares); ``app.state.catalog`` knows the modules, ``app.state.runs`` tracks running steps and
+``app.state.pool`` (a :class:`~lab.api.runs.RunPool`) runs them and loads datasets.
 """
 
 from __future__ import annotations
@@ -12,6 +13,7 @@ from typing import Annotated, Callable, Sequence
 from fastapi import Depends, Path, Request
 
 from lab.api.errors import ModuleUnavailable, log
+from lab.api.runs import RunPool
 from lab.core.errors import LabError, UnknownName
 from lab.core.pipeline import Pipeline, Session
 from lab.core.store import SessionStore
@@ -59,13 +61,32 @@ def get_catalog(request: Request) -> ModuleCatalog:
     return request.app.state.catalog
 
 
+def get_pool(request: Request) -> RunPool:
+    return request.app.state.pool
+
+
+def client_address(request: Request) -> str | None:
+    """The address a request comes from, which the per-client session cap counts.
+
+    The socket's peer, unless the app was made with ``trust_forwarded_for`` (one trusted proxy in
+    front): then the last ``X-Forwarded-For`` entry, the one that proxy appended.
+    """
+    if getattr(request.app.state, "trust_forwarded_for", False):
+        hops = [hop.strip() for hop in request.headers.get("x-forwarded-for", "").split(",") if hop.strip()]
+        if hops:
+            return hops[-1]
+    return request.client.host if request.client is not None else None
+
+
 def get_session(request: Request,
                 session_id: Annotated[str, Path(description="The session's id, as returned by POST /api/sessions.")]
                 ) -> Session:
-    """The live session ``session_id`` (404 ``field: session`` when unknown or expired)."""
+    """The live session ``session_id`` (404 ``field: session`` saying whether it expired, was deleted or never was)."""
     return get_store(request).get(session_id)
 
 
 StoreDep = Annotated[SessionStore, Depends(get_store)]
 CatalogDep = Annotated[ModuleCatalog, Depends(get_catalog)]
 SessionDep = Annotated[Session, Depends(get_session)]
+PoolDep = Annotated[RunPool, Depends(get_pool)]
+ClientDep = Annotated[str | None, Depends(client_address)]

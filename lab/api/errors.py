@@ -51,7 +51,8 @@ class ErrorBody(BaseModel):
 
     error: str = Field(description="The kind: not_found, invalid_request, invalid_control, invalid_value, "
                                    "missing_input, busy, step_failed, cancelled, not_running, capacity, "
-                                   "unavailable, internal.", examples=["invalid_control"])
+                                   "too_many_requests, overloaded, unavailable, internal.",
+                       examples=["invalid_control"])
     field: str = Field(description="What is at fault: a control, an option (`options.path`), a value, "
                                    "`session`, `module`, `step`, `body`...", examples=["sigma"])
     reason: str = Field(description="Why, in words.", examples=["must be at most 1.0, got 3.0"])
@@ -98,7 +99,7 @@ class LabJSONResponse(JSONResponse):
 
 # --- exception handlers -------------------------------------------------------------------------
 async def lab_error_handler(request: Request, exc: LabError) -> JSONResponse:
-    return LabJSONResponse(exc.to_dict(), status_code=exc.status)
+    return LabJSONResponse(exc.to_dict(), status_code=exc.status, headers=exc.headers())
 
 
 def _field_of(loc: tuple[Any, ...] | list[Any]) -> str:

@@ -1,21 +1,28 @@
-"""Running steps for the API: checks before a run, the worker-thread job, and progress for event streams.
+"""Running steps for the API: the bounded worker pool, checks before a run, the job, progress for event streams.
 
-A step runs in a worker thread through :meth:`Session.run`, so the event loop stays free and the
-viewer, which shares the session, sees the same state, history and lock. Each session gets one
-:class:`RunMonitor` (kept beside the session, not in it) that records the progress snapshots and the
-final outcome of the latest run, whoever started it, for ``GET /api/sessions/{id}/events``.
+A step runs through :meth:`Session.run` on a thread of the app's bounded :class:`RunPool`
+(never in the event loop), so ``/api/health`` and light requests stay fast, and the viewer, which
+shares the session, sees the same state, history and lock. When the pool's workers are busy a run
+waits in its bounded queue; when the queue is full too, it is refused with 429 and Retry-After.
+Each session gets one :class:`RunMonitor` (kept beside the session, not in it) that records the
+progress snapshots and the final outcome of the latest run, whoever started it, for
+``GET /api/sessions/{id}/events``.
 """
 
 from __future__ import annotations
 
+import asyncio
+import concurrent.futures
+import os
 import threading
 import time
 import weakref
 from collections import deque
-from typing import Any, Callable
+from queue import SimpleQueue
+from typing import Any, Callable, TypeVar
 
 from lab.api.errors import error_body, jsonable, log
-from lab.core.errors import Cancelled, InvalidControl, LabError, MissingInput, SessionBusy
+from lab.core.errors import Cancelled, InvalidControl, LabError, MissingInput, SessionBusy, TooManyRequests
 from lab.core.pipeline import RunRecord, Session
 from lab.core.step import Progress, StepSpec
 from lab.core.store import SessionStore
@@ -25,6 +32,104 @@ MAX_EVENTS = 1000
 #: A run started outside the API (the viewer) is seen through its progress; if it ends without a
 #: history record (a bug), subscribers get an error after this long.
 ORPHAN_SECONDS = 2.0
+#: Worker threads of the default pool: the CPUs, at least 2 and at most 4 (steps use several cores each).
+DEFAULT_WORKERS = max(2, min(4, os.cpu_count() or 1))
+#: Runs (and dataset loads) that may wait for a worker in the default pool before more are refused.
+DEFAULT_QUEUE = 32
+
+T = TypeVar("T")
+
+
+class RunPool:
+    """A bounded pool of daemon threads for the API's runs and dataset loads.
+
+    At most ``workers`` jobs run at once and at most ``queue`` more wait, in order; one more is
+    refused with :class:`TooManyRequests` (429) whose ``retry_after`` is estimated from how long
+    recent jobs took. The event loop never runs a job, and a flood of runs cannot start a thread
+    each. A job is a callable that handles its own errors (:meth:`call` wraps one that may raise).
+    """
+
+    def __init__(self, *, workers: int = DEFAULT_WORKERS, queue: int = DEFAULT_QUEUE) -> None:
+        if workers < 1 or queue < 0:
+            raise ValueError(f"a pool needs at least 1 worker and a queue of 0 or more, got {workers}, {queue}")
+        self.workers = workers
+        self.queue = queue
+        self._jobs: SimpleQueue[Callable[[], None]] = SimpleQueue()
+        self._lock = threading.Lock()
+        self._held = 0  # jobs running or waiting
+        self._running = 0
+        self._threads: list[threading.Thread] = []
+        self._mean_seconds = 1.0  # moving average of job durations, for Retry-After
+
+    def stats(self) -> dict[str, int]:
+        """``{"workers", "running", "queued", "max_queued"}`` now."""
+        with self._lock:
+            return {"workers": self.workers, "running": self._running, "queued": self._held - self._running,
+                    "max_queued": self.queue}
+
+    def reserve(self) -> bool:
+        """Hold a place for one job (429 when none is left); True when a worker is free to take it now."""
+        with self._lock:
+            if self._held >= self.workers + self.queue:
+                waiting = self._held - self._running
+                wait = self._mean_seconds * (waiting + 1) / self.workers
+                raise TooManyRequests("server", f"the server's workers run {self._running} steps or dataset loads "
+                                                f"with {waiting} more waiting (at most {self.workers} at once and "
+                                                f"{self.queue} waiting); retry later",
+                                      retry_after=min(60.0, max(1.0, wait)))
+            self._held += 1
+            return self._held <= self.workers
+
+    def release(self) -> None:
+        """Give back a place held by :meth:`reserve` that will not be :meth:`start`-ed."""
+        with self._lock:
+            self._held -= 1
+
+    def start(self, job: Callable[[], None]) -> None:
+        """Run ``job`` on a worker (its place held by :meth:`reserve`) as soon as one is free."""
+        with self._lock:
+            while len(self._threads) < self.workers:
+                thread = threading.Thread(target=self._work, name=f"lab-worker-{len(self._threads)}", daemon=True)
+                self._threads.append(thread)
+                thread.start()
+        self._jobs.put(job)
+
+    def submit(self, job: Callable[[], None]) -> bool:
+        """:meth:`reserve` then :meth:`start`; True when it starts at once, False when it waits its turn."""
+        now = self.reserve()
+        self.start(job)
+        return now
+
+    async def call(self, func: Callable[[], T]) -> T:
+        """``func()`` on a worker, awaited; its exception is raised here (429 when the pool is full)."""
+        future: concurrent.futures.Future[T] = concurrent.futures.Future()
+
+        def job() -> None:
+            if not future.set_running_or_notify_cancel():  # the request went away while it waited
+                return
+            try:
+                future.set_result(func())
+            except BaseException as exc:  # handed to the awaiting request
+                future.set_exception(exc)
+
+        self.submit(job)
+        return await asyncio.wrap_future(future)
+
+    def _work(self) -> None:
+        while True:
+            job = self._jobs.get()
+            with self._lock:
+                self._running += 1
+            started = time.perf_counter()
+            try:
+                job()
+            except BaseException:  # a job handles its own errors; never lose the worker
+                log.exception("a worker job failed")
+            finally:
+                with self._lock:
+                    self._running -= 1
+                    self._held -= 1
+                    self._mean_seconds = 0.8 * self._mean_seconds + 0.2 * (time.perf_counter() - started)
 
 
 def step_response(session: Session, record: RunRecord) -> dict[str, Any]:
@@ -295,7 +400,3 @@ class RunJob:
                 except RuntimeError:  # the waiting event loop is gone (server shutting down)
                     pass
 
-    def start_background(self) -> None:
-        """Run in a thread of its own (not the shared worker pool, which long steps would exhaust)."""
-        thread = threading.Thread(target=self.execute, name=f"lab-run-{self.session.id}-{self.step}", daemon=True)
-        thread.start()

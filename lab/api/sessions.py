@@ -1,9 +1,12 @@
 """``/api/sessions``: create a session on a dataset, run steps, stream progress, cancel, reset, delete.
 
 Sessions live in the shared :class:`~lab.core.store.SessionStore`, so a session made here can be
-opened in the viewer and vice versa. Each run has a thread of its own (the event loop and the
-shared worker pool stay free); ``?wait=false`` returns 202 at once and the run's progress and
-outcome arrive on ``GET /api/sessions/{id}/events``.
+opened in the viewer and vice versa. Runs and dataset loads go through the app's bounded
+:class:`~lab.api.runs.RunPool` (never the event loop): when its workers are busy they wait in
+its queue, and when that is full they are refused with 429 and ``Retry-After``. New sessions are
+admitted within the store's caps (429 per client, 503 for the server) and never evict one in use.
+``?wait=false`` returns 202 at once and the run's progress and outcome arrive on
+``GET /api/sessions/{id}/events``.
 """
 
 from __future__ import annotations
@@ -15,13 +18,12 @@ from typing import Annotated, Any
 from urllib.parse import urlencode
 
 from fastapi import APIRouter, Body, Path, Query, Request, Response
-from fastapi.concurrency import run_in_threadpool
 from fastapi.sse import EventSourceResponse, ServerSentEvent
 from pydantic import BaseModel, ConfigDict, Field
 
-from lab.api.deps import CatalogDep, SessionDep, StoreDep
+from lab.api.deps import CatalogDep, ClientDep, PoolDep, SessionDep, StoreDep
 from lab.api.errors import LabJSONResponse, NothingRunning, error_responses, jsonable
-from lab.api.runs import RunJob, RunMonitor, check_idle, plan_step, plan_until, record_outcome
+from lab.api.runs import RunJob, RunMonitor, RunPool, check_idle, plan_step, plan_until, record_outcome
 from lab.core.errors import InvalidValue, LabError
 from lab.core.pipeline import DatasetSpec, Pipeline, Session
 
@@ -29,6 +31,19 @@ router = APIRouter(prefix="/api/sessions", tags=["sessions"], responses=error_re
 
 #: How often an event stream looks for new progress (seconds).
 POLL_SECONDS = 0.05
+
+_RETRY_AFTER_HEADER = {"Retry-After": {"description": "Seconds after which to try again.",
+                                       "schema": {"type": "integer", "minimum": 1}}}
+
+
+def retry_later_responses(texts: dict[int, str]) -> dict[int | str, dict[str, Any]]:
+    """:func:`error_responses` for ``texts``, with the ``Retry-After`` header on 429 and 503."""
+    responses = error_responses(texts)
+    for code in (429, 503):
+        if code in texts:
+            responses[code] = {**responses[code], "headers": _RETRY_AFTER_HEADER}
+    return responses
+
 
 StepName = Annotated[str, Path(description="Step name, as listed by GET /api/modules/{module}.")]
 Wait = Annotated[bool, Query(description="`true`: answer when the run is over (200 with its record). `false`: "
@@ -92,7 +107,7 @@ def current_warnings(session: Session) -> list[dict[str, str]]:
 
 
 def _load_session(pipeline: Pipeline, spec: DatasetSpec, options: dict[str, Any], seed: int) -> Session:
-    """Load a dataset (in a worker thread), naming the option at fault in every error."""
+    """Load a dataset (on a worker), naming the option at fault in every error."""
     option_names = {o.name for o in spec.options}
     try:
         loaded = spec.load(options)
@@ -106,20 +121,32 @@ def _load_session(pipeline: Pipeline, spec: DatasetSpec, options: dict[str, Any]
     return Session(pipeline, loaded, dataset=spec.name, options=options, seed=seed)
 
 
-@router.post("", status_code=201, summary="Create a session",
+_CREATE_RESPONSES = retry_later_responses({
+    413: "The dataset alone needs more memory than the server allows for all sessions.",
+    429: "This client address already holds its share of live sessions, or the worker pool and its queue are "
+         "full; see Retry-After.",
+    503: "The server holds its most live sessions, or their memory is at the cap (none in use is evicted); "
+         "see Retry-After."})
+
+
+@router.post("", status_code=201, summary="Create a session", responses=_CREATE_RESPONSES,
              description="Load a dataset of a module into a new session and return its summary (201; the id is "
-                         "`id`). 404 for an unknown module or dataset, 422 for a bad option, 413 when the server "
-                         "holds too many busy sessions or the dataset is too large.")
-async def create_session(request: Request, body: SessionCreate, catalog: CatalogDep, store: StoreDep
-                         ) -> LabJSONResponse:
+                         "`id`). 404 for an unknown module or dataset, 422 for a bad option, 413 when the dataset "
+                         "is too large; when there is no room, 429 (this client holds its share of sessions, or "
+                         "the workers are saturated) or 503 (the server is full), with Retry-After. No session in "
+                         "use is ever evicted to make room.")
+async def create_session(request: Request, body: SessionCreate, catalog: CatalogDep, store: StoreDep,
+                         pool: PoolDep, client: ClientDep) -> LabJSONResponse:
     pipeline = catalog.get(body.module)
     spec = pipeline.dataset(body.dataset)
     try:
         store.check_path(spec, body.options)
     except LabError as exc:
         raise type(exc)(f"options.{exc.field}", exc.reason) from None
-    session = await run_in_threadpool(_load_session, pipeline, spec, dict(body.options), body.seed)
-    store.add(session)
+    store.check_room(client=client)  # refuse at once rather than after waiting for a worker
+    options = dict(body.options)
+    session = await pool.call(lambda: store.admit(lambda: _load_session(pipeline, spec, options, body.seed),
+                                                  client=client))
     return LabJSONResponse(session_json(request, session), status_code=201,
                            headers={"Location": f"/api/sessions/{session.id}"})
 
@@ -152,18 +179,24 @@ def reset_session(request: Request, session: SessionDep,
     return LabJSONResponse(session_json(request, session))
 
 
-async def _launch(job: RunJob, wait: bool) -> LabJSONResponse:
-    job.monitor.begin(job)  # atomically refuses a second run (409)
+async def _launch(job: RunJob, wait: bool, pool: RunPool) -> LabJSONResponse:
+    """Run ``job`` on the pool: 429 when its workers and queue are full, 409 when the session is busy."""
+    at_once = pool.reserve()  # 429 before the session is marked busy
+    try:
+        job.monitor.begin(job)  # atomically refuses a second run (409)
+    except BaseException:
+        pool.release()
+        raise
     if not wait:
-        job.start_background()
+        pool.start(job.execute)
         sid = job.session.id
-        return LabJSONResponse({"session": sid, "step": job.step, "status": "running", "until": job.until,
-                                "events": f"/api/sessions/{sid}/events", "cancel": f"/api/sessions/{sid}/cancel"},
-                               status_code=202)
+        return LabJSONResponse({"session": sid, "step": job.step, "status": "running" if at_once else "queued",
+                                "until": job.until, "events": f"/api/sessions/{sid}/events",
+                                "cancel": f"/api/sessions/{sid}/cancel"}, status_code=202)
     loop = asyncio.get_running_loop()
     finished = asyncio.Event()
     job.add_done_callback(lambda: loop.call_soon_threadsafe(finished.set))
-    job.start_background()
+    pool.start(job.execute)
     await finished.wait()
     if job.error is not None:
         raise job.error
@@ -171,11 +204,13 @@ async def _launch(job: RunJob, wait: bool) -> LabJSONResponse:
 
 
 _RUN_RESPONSES: dict[int | str, dict[str, Any]] = {
-    202: {"description": "Started in the background (`?wait=false`); follow the `events` link."},
-    **error_responses({404: "Unknown session or step.",
+    202: {"description": "Started in the background, or queued for a worker (`?wait=false`; `status` says "
+                 "which); follow the `events` link."},
+    **retry_later_responses({404: "Unknown session or step.",
                        409: "A value the step reads does not exist yet, another step is running, or the run was "
                             "cancelled.",
-                       422: "A control is unknown, out of range or wrongly typed, or the step failed on its input."}),
+                       422: "A control is unknown, out of range or wrongly typed, or the step failed on its input.",
+                       429: "The worker pool runs its most steps and its queue is full; see Retry-After."}),
 }
 
 
@@ -184,7 +219,7 @@ _RUN_RESPONSES: dict[int | str, dict[str, Any]] = {
                          "defaults; their schema is in GET /api/modules/{module}). Its outputs replace the old ones "
                          "and invalidate the steps downstream. Answers the run record: params, seed, seconds, "
                          "metrics (with evaluations against the truth when the dataset has one), warnings.")
-async def run_step(request: Request, session: SessionDep, store: StoreDep, step: StepName,
+async def run_step(request: Request, session: SessionDep, store: StoreDep, pool: PoolDep, step: StepName,
                    controls: Annotated[dict[str, Any] | None, Body(description="Controls of the step by name.",
                                                                     examples=[{"sigma": 0.2}])] = None,
                    wait: Wait = True) -> LabJSONResponse:
@@ -192,14 +227,14 @@ async def run_step(request: Request, session: SessionDep, store: StoreDep, step:
     monitor: RunMonitor = request.app.state.runs.monitor(session)
     check_idle(session, monitor)
     plan_step(session, spec, controls)
-    return await _launch(RunJob(session, store, monitor, step=spec.name, params=controls), wait)
+    return await _launch(RunJob(session, store, monitor, step=spec.name, params=controls), wait, pool)
 
 
 @router.post("/{session_id}/run-until/{step}", summary="Run every step up to one", responses=_RUN_RESPONSES,
              description="Run, in order, every step not yet done before `step`, then `step` itself. The JSON body "
                          "maps step names to their controls (`{\"detect_corners\": {\"window\": 7}}`); all of them are "
                          "checked before anything runs. Answers the list of run records.")
-async def run_until(request: Request, session: SessionDep, store: StoreDep, step: StepName,
+async def run_until(request: Request, session: SessionDep, store: StoreDep, pool: PoolDep, step: StepName,
                     params: Annotated[dict[str, dict[str, Any] | None] | None,
                                       Body(description="Controls per step name.")] = None,
                     wait: Wait = True) -> LabJSONResponse:
@@ -207,7 +242,7 @@ async def run_until(request: Request, session: SessionDep, store: StoreDep, step
     monitor: RunMonitor = request.app.state.runs.monitor(session)
     check_idle(session, monitor)
     plan_until(session, spec, params)
-    return await _launch(RunJob(session, store, monitor, step=spec.name, params=params, until=True), wait)
+    return await _launch(RunJob(session, store, monitor, step=spec.name, params=params, until=True), wait, pool)
 
 
 @router.post("/{session_id}/cancel", status_code=202, summary="Cancel the running step",

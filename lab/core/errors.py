@@ -7,6 +7,8 @@ the CLI prints one line and exits 2; the grader writes the reason into the faile
 
 from __future__ import annotations
 
+import math
+
 
 class LabError(Exception):
     """Base class: a problem with what the user asked for, never a bug in the lab."""
@@ -21,6 +23,10 @@ class LabError(Exception):
 
     def to_dict(self) -> dict[str, str]:
         return {"error": self.kind, "field": self.field, "reason": self.reason}
+
+    def headers(self) -> dict[str, str]:
+        """HTTP headers the REST API sends with this error (none; ``Retry-After`` for :class:`RetryLater`)."""
+        return {}
 
 
 class UnknownName(LabError):
@@ -70,6 +76,30 @@ class CapacityExceeded(LabError):
 
     status = 413
     kind = "capacity"
+
+
+class RetryLater(LabError):
+    """No room now for a session or a run (the server is full); room comes back, so try again later.
+
+    ``retry_after`` is a whole number of seconds, at least 1, sent as ``Retry-After``.
+    """
+
+    status = 503
+    kind = "overloaded"
+
+    def __init__(self, field: str, reason: str, *, retry_after: float) -> None:
+        super().__init__(field, reason)
+        self.retry_after = max(1, math.ceil(retry_after))
+
+    def headers(self) -> dict[str, str]:
+        return {"Retry-After": str(self.retry_after)}
+
+
+class TooManyRequests(RetryLater):
+    """This client holds its share of sessions, or the worker pool and its queue are full."""
+
+    status = 429
+    kind = "too_many_requests"
 
 
 class StepFailed(LabError):

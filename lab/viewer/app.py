@@ -853,8 +853,7 @@ class ClientView:
         if session.id not in self.store:
             if self._seen != (-1, -1):
                 self._seen = (-1, -1)
-                self.show_error(UnknownName("session", f"session {session.id!r} was closed or expired; "
-                                                       "press New session"))
+                self.show_error(UnknownName("session", f"{self.store.why_gone(session.id)}; press New session"))
             return
         if (self.worker is not None and self.worker.is_alive()) or session.running is not None:
             return

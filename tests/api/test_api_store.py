@@ -1,4 +1,4 @@
-"""The session store's caps seen through the API: session count, memory, and idle expiry."""
+"""The session store's caps seen through the API: session count, memory, idle expiry; refusals, never eviction."""
 
 from __future__ import annotations
 
@@ -18,25 +18,29 @@ def _client(**store_options):
                                        **store_options}))
 
 
-def test_more_sessions_than_the_cap_evicts_the_least_recently_used():
+def test_more_sessions_than_the_cap_is_503_with_retry_after_and_evicts_none():
     with _client(max_sessions=2) as client:
         first, second = new_session(client), new_session(client)
-        client.get(f"/api/sessions/{first}")  # first is now the more recently used
-        third = new_session(client)
-        assert_error(client.get(f"/api/sessions/{second}"), 404, "session", "not_found")
-        for sid in (first, third):
+        response = client.post("/api/sessions", json={"module": "toy"})
+        body = assert_error(response, 503, "sessions", "overloaded")
+        assert "limit 2" in body["reason"] and int(response.headers["Retry-After"]) >= 1
+        for sid in (first, second):
             assert client.get(f"/api/sessions/{sid}").status_code == 200
         assert client.get("/api/health").json()["sessions"] == 2
+        client.delete(f"/api/sessions/{first}")
+        new_session(client)  # a deleted session gives its place back
 
 
-def test_no_room_when_every_session_is_busy_is_413(gate):
+def test_no_room_when_every_session_is_busy_is_503(gate):
     with _client(max_sessions=1) as client:
         sid = new_session(client, "gated")
         client.post(f"/api/sessions/{sid}/run-until/mean_intensity")
         client.post(f"/api/sessions/{sid}/steps/crawl", params={"wait": "false"})
         wait_until(lambda: running_step(client, sid) == "crawl", "crawl to start")
-        body = assert_error(client.post("/api/sessions", json={"module": "toy"}), 413, "sessions", "capacity")
-        assert "limit 1" in body["reason"]
+        response = client.post("/api/sessions", json={"module": "toy"})
+        body = assert_error(response, 503, "sessions", "overloaded")
+        assert "limit 1" in body["reason"] and "every session is in use" in body["reason"]
+        assert response.headers["Retry-After"] == "10"
         assert client.get("/api/health").json()["sessions"] == 1
         assert running_step(client, sid) == "crawl"  # the busy session was left alone
         gate.release(3)
@@ -55,22 +59,26 @@ def test_dataset_larger_than_the_memory_cap_is_413():
         assert client.get("/api/health").json()["sessions"] == 0
 
 
-def test_memory_cap_evicts_idle_sessions_on_create():
+def test_memory_cap_refuses_a_new_session_with_503_instead_of_evicting():
     size = _toy_bytes()
     with _client(max_bytes=int(2.5 * size)) as client:
         first, second = new_session(client), new_session(client)
-        third = new_session(client)
-        assert_error(client.get(f"/api/sessions/{first}"), 404, "session")
-        assert {client.get(f"/api/sessions/{sid}").status_code for sid in (second, third)} == {200}
+        response = client.post("/api/sessions", json={"module": "toy"})
+        body = assert_error(response, 503, "memory", "overloaded")
+        assert "MiB" in body["reason"] and "Retry-After" in response.headers
+        assert {client.get(f"/api/sessions/{sid}").status_code for sid in (first, second)} == {200}
 
 
-def test_memory_cap_is_checked_after_a_step_grows_a_session():
+def test_a_step_that_grows_a_session_past_the_memory_cap_evicts_nothing():
     size = _toy_bytes()
-    with _client(max_bytes=int(2.5 * size)) as client:
+    with _client(max_bytes=int(3.5 * size)) as client:
         first, second = new_session(client), new_session(client)
         client.post(f"/api/sessions/{second}/steps/add_noise")  # second now holds images and noisy images
-        assert_error(client.get(f"/api/sessions/{first}"), 404, "session")
+        assert client.get(f"/api/sessions/{first}").status_code == 200
         assert client.get(f"/api/sessions/{second}").json()["steps"]["add_noise"] == "done"
+        assert_error(client.post("/api/sessions", json={"module": "toy"}), 503, "memory", "overloaded")
+        client.post(f"/api/sessions/{second}/reset")  # freeing memory makes room again
+        new_session(client)
 
 
 def test_idle_sessions_expire(monkeypatch):
@@ -78,7 +86,7 @@ def test_idle_sessions_expire(monkeypatch):
         old, recent = new_session(client), new_session(client)
         client.app.state.store.get(old).last_used -= 120.0
         body = assert_error(client.get(f"/api/sessions/{old}"), 404, "session", "not_found")
-        assert "expired" in body["reason"]
+        assert body["reason"] == f"session {old!r} expired after 60 s idle and was dropped"
         assert client.get(f"/api/sessions/{recent}").status_code == 200
         later = time.time() + 3600.0
         monkeypatch.setattr(lab.core.store, "time", types.SimpleNamespace(time=lambda: later))

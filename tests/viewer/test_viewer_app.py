@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 import viser
 
-from lab.core import Image, ImageSet, Loaded, Pipeline, Progress, Range, metric
+from lab.core import Image, ImageSet, Loaded, Pipeline, Progress, Range, SessionStore, metric
 from lab.viewer.app import (ClientView, ModuleCatalog, add_control_widget, format_number, metrics_markdown,
                             nice_step, widget_kind, widget_value)
 from toy_pipeline import TOY
@@ -208,7 +208,19 @@ def test_changes_made_over_rest_are_redrawn_on_poll(server, store, view):
     assert view.drawer.drawn["noisy"] is drawn
     store.delete(session.id)
     view.poll()
-    assert "was closed or expired" in view.error_box.content
+    assert f"session {session.id!r} was deleted; press New session" in view.error_box.content
+
+
+def test_a_full_store_is_shown_as_a_message_and_evicts_nobody(server):
+    store = SessionStore(max_sessions=1)
+    kept = store.create(TOY)
+    view = make_view(server, store)
+    view.start({})  # no room for the tab's own session: say so, open nothing, keep the other one
+    assert "overloaded" in view.error_box.content and "limit 1" in view.error_box.content
+    assert view.session is None and store.ids() == [kept.id]
+    view._guard(view.new_session_from_gui)
+    assert "retry later" in view.error_box.content and store.ids() == [kept.id]
+    view.poll()  # a tab without a session polls quietly
 
 
 def test_opening_a_session_by_id(server, store, view):
