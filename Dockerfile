@@ -1,6 +1,13 @@
 # Vision Lab, CPU only: the landing page and REST API on 8000, the 3D viewer on 8080.
-#   docker build -t vision-lab . && docker run --rm -p 8000:8000 -p 8080:8080 vision-lab
+#   docker build -t vision-lab . && docker run --rm --cap-add SYS_ADMIN --security-opt apparmor=unconfined \
+#       --security-opt seccomp=unconfined -p 8000:8000 -p 8080:8080 vision-lab
+# The three flags let bubblewrap create the grading sandbox's namespaces (docs/sandbox.md); without
+# them every module still works and submissions are refused with a 503 naming this fix.
 FROM python:3.11-slim
+
+# bubblewrap: each submission runs in its own namespaces; setpriv (util-linux) drops it to its own user.
+RUN apt-get update && apt-get install -y --no-install-recommends bubblewrap util-linux \
+    && rm -rf /var/lib/apt/lists/*
 
 ENV PYTHONDONTWRITEBYTECODE=1 \
     PYTHONUNBUFFERED=1 \

@@ -59,8 +59,9 @@ _SYSTEM_DIRS = ("/usr", "/bin", "/sbin", "/lib", "/lib32", "/lib64", "/libx32")
 _SYSTEM_FILES = ("/etc/ld.so.cache", "/etc/ld.so.conf", "/etc/ld.so.conf.d", "/etc/localtime")
 
 FIX = ("install bubblewrap (Debian/Ubuntu: apt-get install bubblewrap; Fedora: dnf install bubblewrap) and allow "
-       "namespaces (in Docker: docker run --security-opt seccomp=unconfined --security-opt apparmor=unconfined "
-       "--cap-add SYS_ADMIN ...; on Ubuntu 24.04 hosts also sysctl kernel.apparmor_restrict_unprivileged_userns=0), "
+       "namespaces (in Docker: docker run --cap-add SYS_ADMIN --security-opt apparmor=unconfined "
+       "--security-opt seccomp=unconfined ...; as a non-root user on Ubuntu 24.04 also "
+       "sysctl kernel.apparmor_restrict_unprivileged_userns=0), "
        "or, for trusted code only, pass --unsafe-sandbox")
 
 

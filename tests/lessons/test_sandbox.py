@@ -202,3 +202,18 @@ def test_points_round_trip(sandbox):
         points = Points2D(np.array([[1.0, 2.0]]), view=np.array([3]), ids=np.array([4]))
         out = box.call("same", (points,)).value
         assert out.view.tolist() == [3] and out.ids.tolist() == [4]
+
+
+def test_a_child_killed_by_a_signal_is_reported_as_such():
+    source = ("import faulthandler, signal, numpy as np\n"
+              "def segfault():\n    faulthandler._sigsegv()\n"
+              "def hang_up():\n    signal.raise_signal(signal.SIGHUP)\n")
+    with Sandbox(source, limits=FAST) as box:
+        with pytest.raises(SubmissionFailure) as caught:
+            box.call("segfault")
+        assert caught.value.kind == "crashed" and "killed by SIGSEGV" in caught.value.message
+        assert "memory limit is 300 MB" in caught.value.message  # the hint: a library out of memory does this
+        with pytest.raises(SubmissionFailure) as caught:
+            box.call("hang_up")
+        assert caught.value.kind == "crashed" and "killed by SIGHUP" in caught.value.message
+        assert "CPU" not in caught.value.message
