@@ -21,6 +21,7 @@ from fastapi.responses import JSONResponse
 from pydantic import BaseModel, Field
 from starlette.datastructures import Headers
 from starlette.exceptions import HTTPException as StarletteHTTPException
+from starlette.routing import Match
 from starlette.types import ASGIApp, Message, Receive, Scope, Send
 
 from lab.core.errors import CapacityExceeded, LabError
@@ -59,6 +60,7 @@ class ErrorBody(BaseModel):
 
 
 _DEFAULT_ERROR_TEXT = {
+    400: "The body cannot be parsed (JSON that is not UTF-8, a broken form) or Content-Length is not a number.",
     404: "Unknown module, dataset, session, step or value.",
     409: "A step is running, or a value the step reads does not exist yet.",
     413: "The body is too large, or the server has no room for another session.",
@@ -152,10 +154,21 @@ async def http_error_handler(request: Request, exc: StarletteHTTPException) -> J
     detail = exc.detail if isinstance(exc.detail, str) else json.dumps(jsonable(exc.detail))
     if exc.status_code == 404 and detail == "Not Found":
         detail = f"no route {request.url.path!r}; the API is described at /docs"
-    elif exc.status_code == 405:
+    headers = dict(getattr(exc, "headers", None) or {})
+    if exc.status_code == 405:
         detail = f"{request.method} is not allowed on {request.url.path!r}; see /docs"
-    return LabJSONResponse(error_body(kind, field, detail), status_code=exc.status_code,
-                           headers=getattr(exc, "headers", None))
+        headers["Allow"] = ", ".join(allowed_methods(request))
+    return LabJSONResponse(error_body(kind, field, detail), status_code=exc.status_code, headers=headers or None)
+
+
+_METHODS = ("GET", "HEAD", "POST", "PUT", "PATCH", "DELETE")
+
+
+def allowed_methods(request: Request) -> list[str]:
+    """Every method some route answers on the request's path: a 405's ``Allow`` (Starlette names one route's)."""
+    routes = request.app.router.routes
+    return [method for method in _METHODS
+            if any(route.matches({**request.scope, "method": method})[0] is Match.FULL for route in routes)]
 
 
 async def unexpected_error_handler(request: Request, exc: Exception) -> JSONResponse:
