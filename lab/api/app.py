@@ -27,7 +27,7 @@ from lab.api import sessions as sessions_router
 from lab.api import values as values_router
 from lab.api.deps import ModuleCatalog
 from lab.api.errors import BodyLimitMiddleware, LabJSONResponse, register_error_handlers
-from lab.api.runs import DEFAULT_QUEUE, DEFAULT_WORKERS, RunPool, RunRegistry
+from lab.api.runs import DEFAULT_QUEUE, DEFAULT_WORKERS, LIGHT_WORKERS, RunPool, RunPools, RunRegistry
 from lab.core.pipeline import Pipeline
 from lab.core.store import SessionStore
 
@@ -78,8 +78,10 @@ def create_app(store: SessionStore | None = None, *, modules: Callable[[str], Pi
         viewer_url: where the viewer runs; linked from the landing page and ``/api/health``.
         max_upload_bytes: largest request body accepted (413 above it, refused before it is read).
         extra_routers: more routers to include (``lab.api.lessons.router`` is included when it exists).
-        workers: threads that run steps and load datasets (at most that many at once).
-        queued_runs: runs and loads that may wait for a worker; more are refused with 429 and Retry-After.
+        workers: threads of the heavy pool, which runs the steps not known to be quick (LIGHT_WORKERS
+            more run the quick ones, and as many load datasets).
+        queued_runs: runs and loads that may wait for a worker in each pool; more are refused with 429 and
+            Retry-After.
         trust_forwarded_for: count sessions per client by the last ``X-Forwarded-For`` entry (set it only
             behind one trusted proxy); default: by the socket's peer address.
     """
@@ -92,7 +94,9 @@ def create_app(store: SessionStore | None = None, *, modules: Callable[[str], Pi
     app.state.store = store if store is not None else SessionStore()
     app.state.catalog = ModuleCatalog.of(modules, module_names)
     app.state.runs = RunRegistry()
-    app.state.pool = RunPool(workers=workers, queue=queued_runs)
+    app.state.pools = RunPools(heavy=RunPool(workers=workers, queue=queued_runs),
+                               light=RunPool(workers=LIGHT_WORKERS, queue=queued_runs),
+                               loads=RunPool(workers=LIGHT_WORKERS, queue=queued_runs))
     app.state.trust_forwarded_for = bool(trust_forwarded_for)
     app.state.viewer_url = viewer_url
     app.state.max_upload_bytes = int(max_upload_bytes)
@@ -108,14 +112,15 @@ def create_app(store: SessionStore | None = None, *, modules: Callable[[str], Pi
 
     @app.get("/api/health", tags=["service"], summary="Health and server facts",
              description="`status` is `ok` when the API answers; also the version, live sessions and their caps, "
-                         "the worker pool (`runs`: workers, running, queued, max_queued), the served modules and "
-                         "`viewer_url` (null when no viewer runs). Answered in the event loop, never waiting for a "
-                         "worker, so it stays fast while steps run.")
+                         "the worker pools (`runs`: `heavy`, `light` and `loads`, each with workers, running, "
+                         "queued, max_queued), the served modules and `viewer_url` (null when no viewer runs). "
+                         "Answered in the event loop, never waiting for a worker, so it stays fast while steps "
+                         "run.")
     async def health(request: Request) -> LabJSONResponse:
         state = request.app.state
         return LabJSONResponse({"status": "ok", "version": lab.__version__, "sessions": len(state.store),
                 "max_sessions": state.store.max_sessions,
-                "max_sessions_per_client": state.store.max_sessions_per_client, "runs": state.pool.stats(),
+                "max_sessions_per_client": state.store.max_sessions_per_client, "runs": state.pools.stats(),
                 "modules": list(state.catalog.names), "viewer_url": state.viewer_url,
                 "max_upload_bytes": state.max_upload_bytes})
 

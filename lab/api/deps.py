@@ -2,7 +2,7 @@
 
 All live state is in ``app.state.store`` (a :class:`~lab.core.store.SessionStore` the viewer
 shares); ``app.state.catalog`` knows the modules, ``app.state.runs`` tracks running steps and
-``app.state.pool`` (a :class:`~lab.api.runs.RunPool`) runs them and loads datasets.
+``app.state.pools`` (:class:`~lab.api.runs.RunPools`) run them and load datasets.
 """
 
 from __future__ import annotations
@@ -13,7 +13,7 @@ from typing import Annotated, Callable, Sequence
 from fastapi import Depends, Path, Request
 
 from lab.api.errors import ModuleUnavailable, log
-from lab.api.runs import RunPool
+from lab.api.runs import RunPools
 from lab.core.errors import LabError, UnknownName
 from lab.core.pipeline import Pipeline, Session
 from lab.core.store import SessionStore
@@ -61,8 +61,8 @@ def get_catalog(request: Request) -> ModuleCatalog:
     return request.app.state.catalog
 
 
-def get_pool(request: Request) -> RunPool:
-    return request.app.state.pool
+def get_pools(request: Request) -> RunPools:
+    return request.app.state.pools
 
 
 def client_address(request: Request) -> str | None:
@@ -88,5 +88,5 @@ def get_session(request: Request,
 StoreDep = Annotated[SessionStore, Depends(get_store)]
 CatalogDep = Annotated[ModuleCatalog, Depends(get_catalog)]
 SessionDep = Annotated[Session, Depends(get_session)]
-PoolDep = Annotated[RunPool, Depends(get_pool)]
+PoolsDep = Annotated[RunPools, Depends(get_pools)]
 ClientDep = Annotated[str | None, Depends(client_address)]

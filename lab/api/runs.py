@@ -1,9 +1,13 @@
-"""Running steps for the API: the bounded worker pool, checks before a run, the job, progress for event streams.
+"""Running steps for the API: bounded worker pools, checks before a run, the job, progress for event streams.
 
-A step runs through :meth:`Session.run` on a thread of the app's bounded :class:`RunPool`
-(never in the event loop), so ``/api/health`` and light requests stay fast, and the viewer, which
-shares the session, sees the same state, history and lock. When the pool's workers are busy a run
-waits in its bounded queue; when the queue is full too, it is refused with 429 and Retry-After.
+A step runs through :meth:`Session.run` on a thread of one of the app's bounded :class:`RunPools`
+(never in the event loop), so ``/api/health`` stays fast, and the viewer, which shares the
+session, sees the same state, history and lock. A step whose last run in the session was quick
+goes to the light pool, so it does not wait behind other users' heavy steps, dataset loads go to
+a pool of their own (a flood of creations cannot hold up steps), the rest to the heavy pool.
+When a pool's workers are busy a run waits in its bounded queue; when the queue is full too, it
+is refused with 429 and Retry-After.
+
 Each session gets one :class:`RunMonitor` (kept beside the session, not in it) that records the
 progress snapshots and the final outcome of the latest run, whoever started it, for
 ``GET /api/sessions/{id}/events``.
@@ -18,6 +22,7 @@ import threading
 import time
 import weakref
 from collections import deque
+from dataclasses import dataclass
 from queue import SimpleQueue
 from typing import Any, Callable, TypeVar
 
@@ -36,6 +41,10 @@ ORPHAN_SECONDS = 2.0
 DEFAULT_WORKERS = max(2, min(4, os.cpu_count() or 1))
 #: Runs (and dataset loads) that may wait for a worker in the default pool before more are refused.
 DEFAULT_QUEUE = 32
+#: Worker threads of the light pool (steps known to be quick) and of the pool that loads datasets.
+LIGHT_WORKERS = 2
+#: A step whose last successful run in the session took less than this (seconds) runs on the light pool.
+LIGHT_SECONDS = 0.1
 
 T = TypeVar("T")
 
@@ -145,6 +154,30 @@ def record_outcome(session: Session, record: RunRecord) -> tuple[str, dict[str, 
         return "done", step_response(session, record)
     kind = "cancelled" if record.status == "cancelled" else "step_failed"
     return "error", {**error_body(kind, record.step, record.error), "step": record.step}
+
+
+@dataclass(frozen=True)
+class RunPools:
+    """The app's bounded pools: ``heavy`` for run-until and any step not known to be quick;
+    ``light`` for a step whose last successful run in the session took under LIGHT_SECONDS;
+    ``loads`` for the dataset loads of new sessions.
+
+    A light step that turns out slow (other controls) holds a light worker once; its record then
+    sends it to the heavy pool next time.
+    """
+
+    heavy: RunPool
+    light: RunPool
+    loads: RunPool
+
+    def for_step(self, session: Session, step: str) -> RunPool:
+        for record in reversed(session.history):
+            if record.step == step and record.status == "ok":
+                return self.light if record.seconds < LIGHT_SECONDS else self.heavy
+        return self.heavy
+
+    def stats(self) -> dict[str, dict[str, int]]:
+        return {"heavy": self.heavy.stats(), "light": self.light.stats(), "loads": self.loads.stats()}
 
 
 class RunMonitor:

@@ -2,9 +2,10 @@
 
 Sessions live in the shared :class:`~lab.core.store.SessionStore`, so a session made here can be
 opened in the viewer and vice versa. Runs and dataset loads go through the app's bounded
-:class:`~lab.api.runs.RunPool` (never the event loop): when its workers are busy they wait in
-its queue, and when that is full they are refused with 429 and ``Retry-After``. New sessions are
-admitted within the store's caps (429 per client, 503 for the server) and never evict one in use.
+:class:`~lab.api.runs.RunPools` (never the event loop; loads and quick steps have pools of their
+own): when a pool's workers are busy they wait in its queue, and when that is full they are
+refused with 429 and ``Retry-After``. New sessions are admitted within the store's caps (429 per
+client, 503 for the server) and never evict one in use.
 ``?wait=false`` returns 202 at once and the run's progress and outcome arrive on
 ``GET /api/sessions/{id}/events``.
 """
@@ -14,6 +15,7 @@ from __future__ import annotations
 import asyncio
 import json
 from collections.abc import AsyncIterable
+from functools import partial
 from typing import Annotated, Any
 from urllib.parse import urlencode
 
@@ -21,7 +23,7 @@ from fastapi import APIRouter, Body, Path, Query, Request, Response
 from fastapi.sse import EventSourceResponse, ServerSentEvent
 from pydantic import BaseModel, ConfigDict, Field
 
-from lab.api.deps import CatalogDep, ClientDep, PoolDep, SessionDep, StoreDep
+from lab.api.deps import CatalogDep, ClientDep, PoolsDep, SessionDep, StoreDep
 from lab.api.errors import LabJSONResponse, NothingRunning, error_responses, jsonable
 from lab.api.runs import RunJob, RunMonitor, RunPool, check_idle, plan_step, plan_until, record_outcome
 from lab.core.errors import InvalidValue, LabError
@@ -136,7 +138,7 @@ _CREATE_RESPONSES = retry_later_responses({
                          "the workers are saturated) or 503 (the server is full), with Retry-After. No session in "
                          "use is ever evicted to make room.")
 async def create_session(request: Request, body: SessionCreate, catalog: CatalogDep, store: StoreDep,
-                         pool: PoolDep, client: ClientDep) -> LabJSONResponse:
+                         pools: PoolsDep, client: ClientDep) -> LabJSONResponse:
     pipeline = catalog.get(body.module)
     spec = pipeline.dataset(body.dataset)
     try:
@@ -145,8 +147,8 @@ async def create_session(request: Request, body: SessionCreate, catalog: Catalog
         raise type(exc)(f"options.{exc.field}", exc.reason) from None
     store.check_room(client=client)  # refuse at once rather than after waiting for a worker
     options = dict(body.options)
-    session = await pool.call(lambda: store.admit(lambda: _load_session(pipeline, spec, options, body.seed),
-                                                  client=client))
+    load = partial(_load_session, pipeline, spec, options, body.seed)
+    session = await pools.loads.call(partial(store.admit, load, client=client))
     return LabJSONResponse(session_json(request, session), status_code=201,
                            headers={"Location": f"/api/sessions/{session.id}"})
 
@@ -219,7 +221,7 @@ _RUN_RESPONSES: dict[int | str, dict[str, Any]] = {
                          "defaults; their schema is in GET /api/modules/{module}). Its outputs replace the old ones "
                          "and invalidate the steps downstream. Answers the run record: params, seed, seconds, "
                          "metrics (with evaluations against the truth when the dataset has one), warnings.")
-async def run_step(request: Request, session: SessionDep, store: StoreDep, pool: PoolDep, step: StepName,
+async def run_step(request: Request, session: SessionDep, store: StoreDep, pools: PoolsDep, step: StepName,
                    controls: Annotated[dict[str, Any] | None, Body(description="Controls of the step by name.",
                                                                     examples=[{"sigma": 0.2}])] = None,
                    wait: Wait = True) -> LabJSONResponse:
@@ -227,14 +229,15 @@ async def run_step(request: Request, session: SessionDep, store: StoreDep, pool:
     monitor: RunMonitor = request.app.state.runs.monitor(session)
     check_idle(session, monitor)
     plan_step(session, spec, controls)
-    return await _launch(RunJob(session, store, monitor, step=spec.name, params=controls), wait, pool)
+    return await _launch(RunJob(session, store, monitor, step=spec.name, params=controls), wait,
+                         pools.for_step(session, spec.name))
 
 
 @router.post("/{session_id}/run-until/{step}", summary="Run every step up to one", responses=_RUN_RESPONSES,
              description="Run, in order, every step not yet done before `step`, then `step` itself. The JSON body "
                          "maps step names to their controls (`{\"detect_corners\": {\"window\": 7}}`); all of them are "
                          "checked before anything runs. Answers the list of run records.")
-async def run_until(request: Request, session: SessionDep, store: StoreDep, pool: PoolDep, step: StepName,
+async def run_until(request: Request, session: SessionDep, store: StoreDep, pools: PoolsDep, step: StepName,
                     params: Annotated[dict[str, dict[str, Any] | None] | None,
                                       Body(description="Controls per step name.")] = None,
                     wait: Wait = True) -> LabJSONResponse:
@@ -242,7 +245,8 @@ async def run_until(request: Request, session: SessionDep, store: StoreDep, pool
     monitor: RunMonitor = request.app.state.runs.monitor(session)
     check_idle(session, monitor)
     plan_until(session, spec, params)
-    return await _launch(RunJob(session, store, monitor, step=spec.name, params=params, until=True), wait, pool)
+    return await _launch(RunJob(session, store, monitor, step=spec.name, params=params, until=True), wait,
+                         pools.heavy)
 
 
 @router.post("/{session_id}/cancel", status_code=202, summary="Cancel the running step",

@@ -2,7 +2,7 @@
 
 A flood of session creations is refused past the caps (total: 503; per client address: 429)
 while a session in use stays reachable and runs steps; runs go through the app's bounded worker
-pool, whose queue holds what it can and refuses the rest with 429, while /api/health answers.
+pools, whose queues hold what they can and refuse the rest with 429, while /api/health answers.
 No timing is asserted: only what is answered.
 """
 
@@ -94,7 +94,8 @@ def _gated_ready(client: TestClient) -> str:
 
 def test_runs_beyond_the_pool_wait_in_its_queue_then_get_429_and_health_answers(gate):
     with make_client(_store(), workers=1, queued_runs=1) as client:
-        first, second, third = (_gated_ready(client) for _ in range(3))
+        first, second = _gated_ready(client), _gated_ready(client)
+        third = new_session(client, "gated")  # nothing run yet: its steps go to the heavy pool
         started = client.post(f"/api/sessions/{first}/steps/crawl", params={"wait": "false"})
         assert started.status_code == 202 and started.json()["status"] == "running"
         wait_until(lambda: running_step(client, first) == "crawl", "crawl to start")
@@ -105,17 +106,29 @@ def test_runs_beyond_the_pool_wait_in_its_queue_then_get_429_and_health_answers(
         refused = client.post(f"/api/sessions/{third}/steps/add_noise")  # the worker and the queue are taken
         body = assert_error(refused, 429, "server", "too_many_requests")
         assert "1 more waiting" in body["reason"] and int(refused.headers["Retry-After"]) >= 1
-        assert_error(client.post("/api/sessions", json={"module": "toy"}), 429, "server")  # loads queue there too
+        assert client.post("/api/sessions", json={"module": "toy"}).status_code == 201  # loads: a pool of their own
         assert running_step(client, third) is None  # a refused run leaves its session idle
 
         health = client.get("/api/health")  # the event loop is free while the worker is held
-        assert health.status_code == 200 and health.json()["runs"] == {"workers": 1, "running": 1, "queued": 1,
-                                                                       "max_queued": 1}
+        assert health.status_code == 200
+        assert health.json()["runs"]["heavy"] == {"workers": 1, "running": 1, "queued": 1, "max_queued": 1}
         assert running_step(client, second) is None  # still waiting its turn, not running
 
         gate.release(100)
         wait_until(lambda: client.get(f"/api/sessions/{second}").json()["steps"]["crawl"] == "done", "the queued run")
         assert client.post(f"/api/sessions/{third}/steps/add_noise").status_code == 200
+
+
+def test_a_step_known_to_be_quick_skips_the_heavy_queue(gate):
+    with make_client(_store(), workers=1, queued_runs=0) as client:
+        heavy, quick, fresh = _gated_ready(client), _gated_ready(client), new_session(client, "gated")
+        client.post(f"/api/sessions/{heavy}/steps/crawl", params={"wait": "false"})
+        wait_until(lambda: running_step(client, heavy) == "crawl", "crawl to start")
+        assert_error(client.post(f"/api/sessions/{fresh}/steps/add_noise"), 429, "server")  # not known quick yet
+        again = client.post(f"/api/sessions/{quick}/steps/add_noise", json={"sigma": 0.3})  # quick last time
+        assert again.status_code == 200 and again.json()["params"]["sigma"] == 0.3
+        assert client.get("/api/health").json()["runs"]["heavy"]["running"] == 1
+        gate.release(100)
 
 
 def test_a_queued_run_can_be_cancelled_before_it_starts(gate):
