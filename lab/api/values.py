@@ -10,11 +10,17 @@ Uploading replaces a value some step reads, with the type that step declares
 is the raw file or a multipart form with a file part: an image file for images and image sets
 (``?append=true`` adds a view to an image set; several files in one form make a set), JSON or NPY
 for arrays and typed values, PLY for point clouds and meshes.
+
+Budgets (:mod:`lab.core.budgets`) keep one request bounded: a ``json`` answer holds at most
+``MAX_JSON_NUMBERS`` numbers (a large array is read as ``npy`` or ``png``); an uploaded image is
+refused from its header, before decoding, above ``MAX_IMAGE_PIXELS``, and one upload's images
+together above ``MAX_DATASET_PIXELS`` (413); uploaded JSON nests at most ``MAX_JSON_DEPTH`` levels.
 """
 
 from __future__ import annotations
 
 import inspect
+import io
 from typing import Annotated, Any, Literal
 
 import numpy as np
@@ -26,11 +32,11 @@ from starlette.exceptions import HTTPException as StarletteHTTPException
 from lab.api.deps import SessionDep
 from lab.api.errors import LabJSONResponse, error_responses
 from lab.api.runs import check_idle
-from lab.core import codecs
+from lab.core import budgets, codecs
 from lab.core.errors import InvalidValue, UnknownName
 from lab.core.pipeline import Pipeline
 from lab.core.step import type_name
-from lab.core.values import Cameras, ImageSet, Points2D, Segments2D
+from lab.core.values import Cameras, Image, ImageSet, Points2D, Segments2D
 
 router = APIRouter(prefix="/api/sessions", tags=["values"], responses=error_responses())
 
@@ -114,10 +120,13 @@ _SUFFIX_MEDIA = {"npy": "application/x-npy", "png": "image/png", "ply": "applica
                                          "application/ply": {}},
                              "description": "The value in the asked format."},
                        **error_responses({404: "Unknown session or value (the reason names the step that makes it).",
-                                          422: "The value has no such format, or a bad index."})},
+                                          422: "The value has no such format, a bad index, or more numbers than "
+                                               "format=json may hold (read it as npy or png)."})},
             description="The value in `format`: `json` (the typed value's JSON, the same shape an upload accepts), "
                         "`npy` (its primary array: an image's pixels, points' xy, a cloud's xyz, cameras' [R|t]), "
-                        "`png` (images, image sets and 2D arrays), `ply` (point clouds and meshes).")
+                        "`png` (images, image sets and 2D arrays), `ply` (point clouds and meshes). A `json` answer "
+                        "holds at most `lab.core.budgets.MAX_JSON_NUMBERS` numbers (about a million); larger values "
+                        "are refused (422, field `format`) and read as `npy` or `png`, or one view with `index`.")
 async def read_value(session: SessionDep, name: ValueName,
                      format: Annotated[Literal["json", "npy", "png", "ply"], Query(description="Encoding.")] = "json",
                      index: Annotated[int | None, Query(ge=0, description="Pick one view / camera / row.")] = None
@@ -126,6 +135,8 @@ async def read_value(session: SessionDep, name: ValueName,
     if index is not None:
         value = select_index(value, index, name)
     if format == "json":
+        codecs.check_json_answer(value, name=name)
+
         def render() -> bytes:
             try:
                 return LabJSONResponse(codecs.to_json(value)).body
@@ -180,8 +191,22 @@ async def _read_files(request: Request, filename: str | None) -> list[tuple[byte
     return [(payload, filename or _sniffed_name(payload), content_type)]
 
 
+def _check_image_pixels(files: list[tuple[bytes, str, str]], name: str) -> None:
+    """Refuse, from the headers alone, an upload whose image files exceed the per-image or per-upload budget."""
+    total = 0
+    for payload, filename, content_type in files:
+        if (filename or "").lower().endswith(".json") or "json" in (content_type or ""):
+            continue  # JSON carries its pixels as text, which the body limit bounds
+        width, height = codecs.check_image_header(io.BytesIO(payload), field=name,
+                                                  what=repr(filename) if filename else "the upload")
+        total += width * height
+    budgets.check_upload_pixels(total, field=name)
+
+
 def _decode(files: list[tuple[bytes, str, str]], annotation: Any, name: str) -> Any:
     cls = _base_type(annotation)
+    if cls in (Image, ImageSet):
+        _check_image_pixels(files, name)
     if cls is ImageSet:
         images = []
         for payload, filename, content_type in files:
@@ -202,7 +227,8 @@ def _decode(files: list[tuple[bytes, str, str]], annotation: Any, name: str) -> 
 @router.put("/{session_id}/values/{name}", summary="Upload an input value",
             responses=error_responses({404: "Unknown session, or a value no step of the module reads.",
                                        409: "A step is running.",
-                                       413: "The body is over the upload limit.",
+                                       413: "The body is over the upload limit, or an image has more pixels than "
+                                            "the budget (read from its header, before decoding).",
                                        422: "Wrong type, shape or dtype, not an image, malformed JSON/NPY/PLY."}),
             openapi_extra={"requestBody": {"required": True, "content": {
                 "application/octet-stream": {"schema": {"type": "string", "format": "binary"}},

@@ -20,6 +20,7 @@ from typing import Annotated
 import numpy as np
 
 from lab.core import Image, ImageSet, InvalidValue, Loaded, Mesh, Points2D, Range
+from lab.core.budgets import check_dataset_pixels
 from lab.geometry.camera import (as_distortion, distort_components, pixels_to_normalized, project_points,
                                  undistort)
 from lab.geometry.rotations import rotvec_to_matrix
@@ -170,6 +171,7 @@ def synthetic(*, columns: Annotated[int, Range(3, 20)] = 9, rows: Annotated[int,
     """
     import cv2
 
+    check_dataset_pixels(views=num_views, width=width, height=height)
     board = Checkerboard(columns, rows, square_size)
     if not (0 <= cx < width and 0 <= cy < height):
         raise InvalidValue("cx", f"the principal point ({cx}, {cy}) must lie inside the {width}x{height} image")

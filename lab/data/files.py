@@ -2,13 +2,18 @@
 
 Shared by the loaders of a user's photos (:func:`lab.data.two_view.photos`, :func:`lab.data.checkerboard.folder`,
 :mod:`lab.data.stereo`). Files are decoded by OpenCV's ``imread`` (any depth, alpha dropped, BGR turned
-into RGB by :func:`lab.core.codecs.image_from_cv2`).
+into RGB by :func:`lab.core.codecs.image_from_cv2`) after their header passed the pixel budget
+(:data:`lab.core.budgets.MAX_IMAGE_PIXELS`): a huge file is refused by name, never decoded.
+:func:`link_outside` finds the files of a folder that are symbolic links out of a server's data root.
 """
 
 from __future__ import annotations
 
 import glob
 import os
+from pathlib import Path
+
+import numpy as np
 
 from lab.core import Image, InvalidValue
 
@@ -37,20 +42,56 @@ def list_images(path: str, pattern: str = "*") -> list[str]:
                   if os.path.isfile(f) and f.lower().endswith(IMAGE_SUFFIXES))
 
 
-def read_images(files: list[str]) -> list[Image]:
-    """Decode each file (``cv2.imread``, unchanged depth) into an Image named by its file name."""
+def read_image_file(file: str) -> np.ndarray:
+    """``cv2.imread(file, IMREAD_UNCHANGED)`` once the header is within the pixel budget.
+
+    Raises CapacityExceeded (413) on ``path`` naming the file when it has more than
+    :data:`lab.core.budgets.MAX_IMAGE_PIXELS` pixels, InvalidValue when it is not an image the lab
+    reads; neither decodes a pixel.
+    """
     import cv2
 
+    from lab.core.codecs import check_image_header
+
+    what = f"{os.path.basename(file)!r} in {os.path.dirname(file) or '.'!r}"
+    try:
+        with open(file, "rb") as stream:
+            check_image_header(stream, field="path", what=what)
+    except OSError as exc:
+        raise InvalidValue("path", f"cannot open {what}: {exc.strerror or exc}") from None
+    decoded = cv2.imread(file, cv2.IMREAD_UNCHANGED)
+    if decoded is None:
+        raise InvalidValue("path", f"OpenCV cannot read {what}")
+    return decoded
+
+
+def read_images(files: list[str]) -> list[Image]:
+    """Decode each file (:func:`read_image_file`, unchanged depth) into an Image named by its file name."""
     from lab.core.codecs import image_from_cv2
 
-    images = []
-    for file in files:
-        decoded = cv2.imread(file, cv2.IMREAD_UNCHANGED)
-        if decoded is None:
-            raise InvalidValue("path", f"OpenCV cannot read {os.path.basename(file)!r} in "
-                                       f"{os.path.dirname(file) or '.'!r}")
-        images.append(image_from_cv2(decoded, name=os.path.basename(file)))
-    return images
+    return [image_from_cv2(read_image_file(file), name=os.path.basename(file)) for file in files]
 
 
-__all__ = ["IMAGE_SUFFIXES", "check_folder", "list_images", "read_images"]
+def link_outside(path: str | os.PathLike, root: Path) -> str | None:
+    """The first entry of folder ``path`` (or ``path`` itself) that is a symbolic link resolving outside ``root``.
+
+    Loaders read a folder's own files, so its entries are what is checked, one by one; None when
+    every entry stays inside ``root`` (a resolved folder).
+    """
+    target = Path(path).expanduser()
+    try:
+        entries = sorted(target.iterdir()) if target.is_dir() else [target]
+    except OSError:  # unreadable: the loader reports it
+        return None
+    for entry in entries:
+        if entry.is_symlink():
+            try:
+                resolved = entry.resolve()
+            except (OSError, RuntimeError):  # a loop of links resolves nowhere: refused as well
+                return entry.name
+            if resolved != root and root not in resolved.parents:
+                return entry.name
+    return None
+
+
+__all__ = ["IMAGE_SUFFIXES", "check_folder", "list_images", "read_image_file", "read_images", "link_outside"]

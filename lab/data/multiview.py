@@ -24,6 +24,7 @@ from typing import Annotated, Literal
 import numpy as np
 
 from lab.core import Image, ImageSet, InvalidValue, Loaded, Points2D, Range
+from lab.core.budgets import check_dataset_pixels
 from lab.data.files import check_folder, list_images, read_images
 
 #: 35 mm film diagonal, millimetres (EXIF ``FocalLengthIn35mmFilm`` is relative to it).
@@ -133,6 +134,7 @@ def rendered(*, scene: Literal["room", "table", "facade"] = "room", path: Litera
     from lab.core import Cameras
     from lab.data.scenes import render
 
+    check_dataset_pixels(views=num_views, width=width, height=height)
     world, cameras = camera_path(scene, path, num_views=num_views, arc_deg=arc_deg, step=step, turn_deg=turn_deg,
                                  width=int(width), height=int(height), fov_deg=fov_deg, seed=seed)
     rng = np.random.default_rng([int(seed), 23])

@@ -23,7 +23,8 @@ from typing import Annotated, Any, Literal
 import numpy as np
 
 from lab.core import Image, InvalidValue, Loaded, Range
-from lab.data.files import IMAGE_SUFFIXES, check_folder, read_images
+from lab.core.budgets import check_dataset_pixels
+from lab.data.files import IMAGE_SUFFIXES, check_folder, read_image_file, read_images
 from lab.geometry.rectification import StereoCalibration, relative_pose, stereo_rectify
 
 #: Calibration of scikit-image's motorcycle pair (its docstring; Middlebury 2014 downsampled 4 times).
@@ -138,6 +139,7 @@ def synthetic(*, scene: Literal["table", "room", "facade"] = "table", rectified:
     from lab.geometry.camera import as_distortion
     from lab.core import Cameras
 
+    check_dataset_pixels(views=2, width=width, height=height, field="width")
     world = named_scene(scene, seed=int(seed))
     dist = None if rectified else np.array([k1, 0.0, 0.0, 0.0, 0.0])
     rig = stereo_rig(baseline=float(baseline), scene=world, width=int(width), height=int(height),
@@ -209,13 +211,14 @@ def read_disparity(path: str) -> np.ndarray:
     """A ground-truth disparity file as ``(H, W)`` float64 pixels with -1 where unknown.
 
     PFM (Middlebury; ``inf`` unknown) or any image OpenCV reads holding disparities in pixels
-    (8- or 16-bit PNG; 0 unknown). Read with ``cv2.imread``.
+    (8- or 16-bit PNG; 0 unknown). Read with :func:`lab.data.files.read_image_file` (the pixel budget,
+    then ``cv2.imread``).
     """
-    import cv2
-
-    decoded = cv2.imread(path, cv2.IMREAD_UNCHANGED)
-    if decoded is None:
-        raise InvalidValue("path", f"{os.path.basename(path)} is not a disparity image OpenCV can read (PNG, PFM ...)")
+    try:
+        decoded = read_image_file(path)
+    except InvalidValue:
+        raise InvalidValue("path", f"{os.path.basename(path)} is not a disparity image OpenCV can read (PNG, PFM ...)"
+                           ) from None
     if decoded.ndim == 3:
         decoded = decoded[:, :, 0]
     values = decoded.astype(np.float64)

@@ -26,6 +26,7 @@ from typing import Annotated, Literal
 import numpy as np
 
 from lab.core import Image, ImageSet, InvalidValue, Loaded, Points2D, Range
+from lab.core.budgets import check_dataset_pixels
 from lab.data.files import check_folder, list_images, read_images
 from lab.geometry.camera import project_points
 from lab.geometry.rotations import look_at, rotvec_to_matrix, skew
@@ -304,6 +305,7 @@ def rendered(*, scene: Literal["room", "table", "facade"] = "room",
     from lab.core import Cameras
     from lab.data.scenes import named_scene, orbit_cameras, render
 
+    check_dataset_pixels(views=2, width=width, height=height, field="width")
     world = named_scene(scene, seed=int(seed))
     centre, up = np.asarray(world.center, dtype=np.float64), np.asarray(world.up, dtype=np.float64)
     offset = np.asarray(world.home, dtype=np.float64) - centre
