@@ -4,7 +4,8 @@
     GET  /api/lessons/{id}                    one lesson: its text, tasks (signatures, checks) and starter file
     GET  /api/lessons/{id}/starter.py         the starter file itself
     POST /api/lessons/{id}/submissions        upload a .py (multipart field ``file``) -> 202 {id, status, url}
-    GET  /api/submissions/{id}                status (queued, running, done, error) and results.json
+    GET  /api/submissions/{id}                status (queued, running, done, error) and results.json (no seeds;
+                                              ?view=instructor adds them, with the instructor's token)
     GET  /api/lessons/{id}/submissions        every submission of a lesson, for an instructor
 
 Grading never runs in a request: an upload is committed to the database and a worker of the
@@ -16,13 +17,16 @@ running). Tests build an app with just this router: :func:`build_app`.
 
 from __future__ import annotations
 
-import ast
 import contextlib
 import hmac
+import json
 import os
-from typing import Annotated, Any, AsyncIterator
+import subprocess
+import sys
+from typing import Annotated, Any, AsyncIterator, Literal
 
-from fastapi import APIRouter, FastAPI, File, Form, Path, Request, UploadFile
+from fastapi import APIRouter, FastAPI, File, Form, Path, Query, Request, UploadFile
+from fastapi.concurrency import run_in_threadpool
 from fastapi.responses import PlainTextResponse
 
 from lab.api.errors import LabJSONResponse, error_responses, register_error_handlers
@@ -150,11 +154,55 @@ def check_upload(payload: bytes, filename: str, *, limit: int) -> str:
     except UnicodeDecodeError as exc:
         raise UnsupportedUpload("file", f"the file is not UTF-8 text (byte {exc.start}): save it as UTF-8 Python "
                                         "source") from None
-    try:
-        ast.parse(text, filename=filename)
-    except SyntaxError as exc:
-        raise InvalidValue("file", f"{filename} line {exc.lineno}: SyntaxError: {exc.msg}") from None
+    check_syntax(text, filename)
     return text
+
+
+#: The child that parses a submission: ``ast.parse`` of stdin, the outcome as one JSON line.
+_PARSE_SCRIPT = """
+import ast, json, resource, sys
+resource.setrlimit(resource.RLIMIT_AS, (%d, %d))
+resource.setrlimit(resource.RLIMIT_CPU, (%d, %d))
+source = sys.stdin.buffer.read().decode("utf-8")
+try:
+    ast.parse(source, filename=sys.argv[1])
+    out = {"ok": True}
+except SyntaxError as exc:
+    out = {"ok": False, "kind": type(exc).__name__, "line": exc.lineno, "msg": exc.msg}
+except (RecursionError, MemoryError) as exc:
+    out = {"ok": False, "kind": type(exc).__name__, "line": None, "msg": str(exc)}
+sys.stdout.write(json.dumps(out))
+"""
+#: Memory (bytes) and CPU seconds the parsing child may use; a 256 KiB file parses in about a second.
+PARSE_MEMORY_BYTES = 1024 * 2**20
+PARSE_SECONDS = 10
+
+
+def check_syntax(text: str, filename: str) -> None:
+    """Parse ``text`` as Python (``ast.parse``) in a child process; InvalidValue (422) on ``file`` when it does not parse.
+
+    The child (``python -I``, memory and CPU limited) keeps the server's process and its event
+    loop free while a large file parses (the parser holds the GIL for its whole run), and turns the
+    parser's RecursionError or MemoryError on deeply nested code into an error naming the file
+    rather than a crash.
+    """
+    script = _PARSE_SCRIPT % (PARSE_MEMORY_BYTES, PARSE_MEMORY_BYTES, PARSE_SECONDS, PARSE_SECONDS)
+    try:
+        done = subprocess.run([sys.executable, "-I", "-S", "-c", script, filename], input=text.encode("utf-8"),
+                              capture_output=True, timeout=2 * PARSE_SECONDS, check=False)
+        outcome = json.loads(done.stdout or b"{}")
+    except subprocess.TimeoutExpired:
+        outcome = {}
+    except ValueError:  # a child killed by its limits writes nothing parsable
+        outcome = {}
+    if outcome.get("ok"):
+        return
+    kind = outcome.get("kind")
+    if kind in ("SyntaxError", "IndentationError", "TabError"):
+        raise InvalidValue("file", f"{filename} line {outcome.get('line')}: {kind}: {outcome.get('msg')}")
+    cause = kind or f"out of time or memory after {PARSE_SECONDS} s"
+    raise InvalidValue("file", f"{filename} is too deeply nested or too long for Python's parser ({cause}): "
+                               "split long expressions into several statements")
 
 
 @router.post("/lessons/{lesson_id}/submissions", status_code=202, summary="Submit a file for grading",
@@ -170,20 +218,43 @@ async def submit(request: Request, lesson_id: LessonId,
     service = get_lesson_service(request)
     lesson = service.catalog.get(lesson_id)
     payload = await file.read(service.max_submission_bytes + 1)
-    text = check_upload(payload, file.filename or "", limit=service.max_submission_bytes)
+    text = await run_in_threadpool(check_upload, payload, file.filename or "", limit=service.max_submission_bytes)
     submission_id = service.submit(lesson.id, file.filename or "submission.py", text, student=student)
     return LabJSONResponse({"id": submission_id, "lesson": lesson.id, "status": "queued",
                             "url": f"/api/submissions/{submission_id}"}, status_code=202)
 
 
+#: Keys of results.json's ``extra_data`` only the instructor's view shows (the check data's seeds).
+INSTRUCTOR_ONLY_EXTRA = ("seeds",)
+
+
+def student_view(submission: dict[str, Any]) -> dict[str, Any]:
+    """A submission's JSON without what stays hidden from students: ``results.extra_data.seeds``."""
+    results = submission.get("results")
+    if not isinstance(results, dict) or not isinstance(results.get("extra_data"), dict):
+        return submission
+    extra = {k: v for k, v in results["extra_data"].items() if k not in INSTRUCTOR_ONLY_EXTRA}
+    return {**submission, "results": {**results, "extra_data": extra}}
+
+
 @router.get("/submissions/{submission_id}", summary="A submission's status and results",
             description="`status` is `queued`, `running`, `done` (with `results`: Gradescope's results.json) or "
-                        "`error` (grading itself failed; `error` says why).")
-def get_submission(request: Request, submission_id: SubmissionId) -> LabJSONResponse:
-    found = get_lesson_service(request).queue.get(submission_id)
+                        "`error` (grading itself failed; `error` says why). The default student view leaves out "
+                        "the check data's seeds (`results.extra_data.seeds`); `?view=instructor` includes them "
+                        "and needs `Authorization: Bearer <VISION_LAB_INSTRUCTOR_TOKEN>` when that is set.",
+            responses=error_responses({403: "view=instructor without the instructor token."}))
+def get_submission(request: Request, submission_id: SubmissionId,
+                   view: Annotated[Literal["student", "instructor"],
+                                   Query(description="`instructor` adds the seeds of the check data.")] = "student"
+                   ) -> LabJSONResponse:
+    service = get_lesson_service(request)
+    if view == "instructor":
+        _check_instructor(request, service)
+    found = service.queue.get(submission_id)
     if found is None:
         raise UnknownName("submission", f"no submission {submission_id!r}")
-    return LabJSONResponse(found.to_json())
+    body = found.to_json()
+    return LabJSONResponse(body if view == "instructor" else student_view(body))
 
 
 @router.get("/lessons/{lesson_id}/submissions", summary="A lesson's submissions (instructor)",
@@ -205,7 +276,7 @@ def _check_instructor(request: Request, service: LessonService) -> None:
     given = request.headers.get("authorization", "")
     scheme, _, value = given.partition(" ")
     if scheme.lower() != "bearer" or not hmac.compare_digest(value.strip().encode(), token.encode()):
-        raise Forbidden("authorization", "this list is for instructors: send 'Authorization: Bearer <token>'")
+        raise Forbidden("authorization", "this is for instructors: send 'Authorization: Bearer <token>'")
 
 
 def build_app(service: LessonService | None = None) -> FastAPI:
