@@ -18,6 +18,7 @@ from __future__ import annotations
 import asyncio
 import concurrent.futures
 import os
+import sys
 import threading
 import time
 import weakref
@@ -45,6 +46,8 @@ DEFAULT_QUEUE = 32
 LIGHT_WORKERS = 2
 #: A step whose last successful run in the session took less than this (seconds) runs on the light pool.
 LIGHT_SECONDS = 0.1
+#: How much lower the workers' CPU priority is than that of the threads answering requests (Linux nice).
+WORKER_NICENESS = 10
 
 T = TypeVar("T")
 
@@ -125,6 +128,7 @@ class RunPool:
         return await asyncio.wrap_future(future)
 
     def _work(self) -> None:
+        lower_priority(WORKER_NICENESS)
         while True:
             job = self._jobs.get()
             with self._lock:
@@ -154,6 +158,19 @@ def record_outcome(session: Session, record: RunRecord) -> tuple[str, dict[str, 
         return "done", step_response(session, record)
     kind = "cancelled" if record.status == "cancelled" else "step_failed"
     return "error", {**error_body(kind, record.step, record.error), "step": record.step}
+
+
+def lower_priority(niceness: int) -> None:
+    """Lower the calling thread's CPU priority by ``niceness`` (Linux, where nice is per thread and
+    threads it starts inherit it; elsewhere nothing), so that on a busy machine the event loop
+    answering requests gets the CPU before the steps do."""
+    if not sys.platform.startswith("linux"):
+        return
+    try:
+        tid = threading.get_native_id()
+        os.setpriority(os.PRIO_PROCESS, tid, min(19, os.getpriority(os.PRIO_PROCESS, tid) + niceness))
+    except OSError:  # not allowed here: run at the normal priority
+        pass
 
 
 @dataclass(frozen=True)

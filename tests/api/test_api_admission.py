@@ -8,11 +8,16 @@ No timing is asserted: only what is answered.
 
 from __future__ import annotations
 
+import os
+import sys
+import threading
 from collections import Counter
 
+import pytest
 from api_helpers import assert_error, make_client, new_session, running_step, wait_until
 from fastapi.testclient import TestClient
 
+from lab.api.runs import WORKER_NICENESS, RunPool
 from lab.core import SessionStore
 
 
@@ -154,3 +159,14 @@ def test_the_schema_declares_429_and_503_with_retry_after():
         for code in codes:
             assert "Retry-After" in responses[code]["headers"]
             assert responses[code]["content"]["application/json"]["schema"]["$ref"].endswith("/ErrorBody")
+
+
+@pytest.mark.skipif(not sys.platform.startswith("linux"), reason="per-thread nice is Linux's")
+def test_workers_run_at_a_lower_cpu_priority_than_the_threads_answering_requests():
+    pool = RunPool(workers=1, queue=0)
+    seen: list[int] = []
+    done = threading.Event()
+    pool.submit(lambda: (seen.append(os.getpriority(os.PRIO_PROCESS, threading.get_native_id())), done.set()))
+    assert done.wait(20)
+    here = os.getpriority(os.PRIO_PROCESS, threading.get_native_id())
+    assert seen[0] == min(19, here + WORKER_NICENESS)
