@@ -78,7 +78,12 @@ class SessionStore:
         return list(self._sessions)
 
     def check_path(self, spec: DatasetSpec, options: dict[str, Any] | None) -> None:
-        """Refuse (Forbidden, field ``path``) a ``path`` option outside :attr:`data_root`."""
+        """Refuse (Forbidden, field ``path``) a ``path`` option outside :attr:`data_root`.
+
+        The folder (or file) must resolve inside the root, and so must each of its files: a file
+        that is a symbolic link to somewhere outside is refused by name
+        (:func:`lab.data.files.link_outside`).
+        """
         if self.data_root is None or not spec.takes_path:
             return
         path = (options or {}).get("path")
@@ -88,6 +93,12 @@ class SessionStore:
         if resolved != self.data_root and self.data_root not in resolved.parents:
             raise Forbidden("path", f"{str(path)!r} is outside the folder this server reads data from "
                                     f"({self.data_root}); put the data there or ask whoever runs the server")
+        from lab.data.files import link_outside  # lab.data imports lab.core
+
+        escaping = link_outside(resolved, self.data_root)
+        if escaping is not None:
+            raise Forbidden("path", f"{escaping!r} in {str(path)!r} is a symbolic link to outside the folder this "
+                                    f"server reads data from ({self.data_root}); copy the file there instead")
 
     def create(self, pipeline: Pipeline, dataset: str | None = None, options: dict[str, Any] | None = None,
                *, seed: int = 0, client: str | None = None) -> Session:
