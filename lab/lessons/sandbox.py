@@ -25,6 +25,7 @@ A call that does not produce a value raises :class:`SubmissionFailure` whose ``k
 
 from __future__ import annotations
 
+import concurrent.futures
 import dataclasses
 import io
 import os
@@ -172,6 +173,26 @@ def _process_alive(pid: int) -> bool:
     return True
 
 
+_launcher: concurrent.futures.ThreadPoolExecutor | None = None
+_launcher_lock = threading.Lock()
+
+
+def _launch(command: list[str], **popen: Any) -> subprocess.Popen:
+    """``subprocess.Popen`` from one long-lived thread of this process.
+
+    bubblewrap's ``--die-with-parent`` is the kernel's parent-death signal, which fires when the
+    *thread* that started the child ends, not the process: a sandbox started from a short-lived
+    thread (a viewer upload, a request) would die with it. Starting every child from this one
+    thread ties the sandboxes' lifetime to the process, as meant.
+    """
+    global _launcher
+    with _launcher_lock:
+        if _launcher is None:
+            _launcher = concurrent.futures.ThreadPoolExecutor(max_workers=1, thread_name_prefix="sandbox-launcher")
+        launcher = _launcher
+    return launcher.submit(subprocess.Popen, command, **popen).result()
+
+
 def _signal_name(number: int) -> str:
     try:
         return signal.Signals(number).name
@@ -315,7 +336,7 @@ class Sandbox:
         response_read, response_write = os.pipe()
         try:
             command, env, inside, outside = self._command(request_read, response_write)
-            self._process = subprocess.Popen(
+            self._process = _launch(
                 command, stdin=subprocess.DEVNULL, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, cwd=outside,
                 env=env, pass_fds=(request_read, response_write), start_new_session=True, close_fds=True)
         except BaseException:
@@ -375,12 +396,11 @@ class Sandbox:
         while True:
             try:
                 pid, status, usage = os.wait4(process.pid, os.WNOHANG)
-            except ChildProcessError:
-                return process.poll()
+            except ChildProcessError:  # reaped already by Popen.poll()
+                code = process.poll()
+                return None if code is None else self._signal_code(code)
             if pid:
-                code = os.waitstatus_to_exitcode(status)
-                if self.isolation.mode == "bwrap" and code > 128:
-                    code = 128 - code  # bubblewrap exits with 128 + the signal that ended the child
+                code = self._signal_code(os.waitstatus_to_exitcode(status))
                 process.returncode = code
                 self._cpu_seconds = usage.ru_utime + usage.ru_stime
                 self._max_rss_mb = usage.ru_maxrss / 1024
@@ -388,6 +408,10 @@ class Sandbox:
             if time.monotonic() >= end:
                 return None
             time.sleep(0.01)
+
+    def _signal_code(self, code: int) -> int:
+        """An exit code with bubblewrap's 128 + N turned into -N, as for a child killed by signal N."""
+        return 128 - code if self.isolation.mode == "bwrap" and code > 128 else code
 
     def kill(self) -> None:
         """Kill the child's whole process group; under bubblewrap its namespace dies with it."""

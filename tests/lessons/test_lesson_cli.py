@@ -88,3 +88,32 @@ def test_lesson_run_writes_a_report(app, tmp_path):
     assert (tmp_path / "report" / "index.html").is_file() and (tmp_path / "report" / "scene.html").is_file()
     result = run(app, "lesson", "run", TOY, "--report", tmp_path / "r2", "--dataset", "nope")
     assert result.exit_code == 2 and result.stderr.startswith("error: --dataset: no dataset 'nope'")
+
+
+def test_grade_with_the_hook_switched_off_cannot_reach_the_reference(app, tmp_path):
+    cheat = tmp_path / "cheat.py"
+    cheat.write_text('import sys\nsys.modules["lab.lessons.child"].Guard.__call__ = lambda self, event, args: None\n'
+                     "from lab.modules.calibration import estimate_homographies, estimate_intrinsics\n")
+    result = run(app, "grade", "01-calibration", cheat, "--seed", 1)
+    assert result.exit_code == 0, result.output
+    assert ": 0 / 20 points" in result.stdout and "No module named 'lab.modules'" in result.stdout
+
+
+def test_grade_without_bubblewrap_exits_2_naming_the_fix(app, monkeypatch):
+    from lab.lessons import isolation
+
+    monkeypatch.setattr(isolation, "default_isolation", lambda: isolation.Isolation(bwrap="/nonexistent/bwrap"))
+    result = run(app, "grade", TOY, SUBMISSIONS / "toy" / "solution.py")
+    assert result.exit_code == 2
+    lines = result.stderr.strip().splitlines()
+    assert len(lines) == 1 and lines[0].startswith("error: sandbox: ") and "--unsafe-sandbox" in lines[0]
+
+
+def test_grade_with_unsafe_sandbox_runs_with_the_audit_hook_only(app, monkeypatch):
+    from lab.lessons import isolation
+
+    monkeypatch.setattr(isolation, "_unsafe_allowed", False)  # restored after the test
+    result = run(app, "grade", TOY, SUBMISSIONS / "toy" / "solution.py", "--unsafe-sandbox", "--seed", 2)
+    assert result.exit_code == 0, result.output
+    assert "6 / 6 points" in result.stdout
+    assert isolation.default_isolation().mode == "unsafe"

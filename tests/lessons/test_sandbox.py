@@ -217,3 +217,16 @@ def test_a_child_killed_by_a_signal_is_reported_as_such():
             box.call("hang_up")
         assert caught.value.kind == "crashed" and "killed by SIGHUP" in caught.value.message
         assert "CPU" not in caught.value.message
+
+
+def test_a_sandbox_started_from_a_thread_that_ends_stays_alive():
+    # --die-with-parent follows the thread that started the child: every child is started from one long-lived thread
+    import threading
+
+    with Sandbox(SOURCE, limits=FAST) as box:
+        starter = threading.Thread(target=box.start)
+        starter.start()
+        starter.join()
+        time.sleep(0.3)
+        assert box.alive and box.starts == 1
+        assert box.call("double", (np.ones(2),)).value.tolist() == [2.0, 2.0] and box.starts == 1
