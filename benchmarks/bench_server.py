@@ -9,11 +9,11 @@ trusting ``X-Forwarded-For`` so each simulated client has an address of its own)
    after gives the memory per session;
 2. for ``--duration`` seconds: light clients re-run ``estimate_intrinsics`` (about 1 ms of work)
    with a short think time, heavy clients re-run ``cost_volume`` with NCC over 11 x 11 windows
-   (about 1 s on an idle machine), a prober reads ``/api/health`` every 20 ms, and an attacker
-   floods ``POST /api/sessions`` (texture sessions, quick to load) over 16 connections:
-   ``--flood`` creations from one address (refused past the per-client cap, 429), then as many
-   from as many addresses (refused past the total cap, 503); afterwards every client's own
-   session must still be there;
+   (about 1 s on an idle machine), a prober (a process of its own, so the clients' threads do
+   not delay it) reads ``/api/health`` every 20 ms, and an attacker floods ``POST /api/sessions``
+   (texture sessions, quick to load) over 16 connections: ``--flood`` creations from one address
+   (refused past the per-client cap, 429), then as many from as many addresses (refused past the
+   total cap, 503); afterwards every client's own session must still be there;
 3. the sessions are deleted and the server stopped.
 
 Latencies are wall-clock times of whole HTTP requests over loopback. A refusal is a 429 or 503
@@ -174,13 +174,36 @@ def loop_steps(client: httpx.Client, tally: Tally, sid: str, work: Workload, sto
             stop.wait(LIGHT_THINK_S)
 
 
-def probe_health(client: httpx.Client, tally: Tally, stop: threading.Event) -> None:
-    while not stop.is_set():
-        outcome, _, seconds = request(client, tally, "health", "GET", "/api/health")
-        if outcome == "ok":
-            with tally.lock:
+def probe_health(base: str, duration: float) -> None:
+    """The prober process (its own, so the clients' threads do not delay it): GET /api/health every
+    HEALTH_EVERY_S for ``duration`` seconds; prints ``{"health_ms": [...], "errors": [...]}``."""
+    tally = Tally()
+    deadline = time.monotonic() + duration
+    with httpx.Client(base_url=base, timeout=REQUEST_TIMEOUT_S) as client:
+        while time.monotonic() < deadline:
+            outcome, _, seconds = request(client, tally, "health", "GET", "/api/health")
+            if outcome == "ok":
                 tally.health_ms.append(seconds * 1000)
-        stop.wait(HEALTH_EVERY_S)
+            time.sleep(HEALTH_EVERY_S)
+    print(json.dumps({"health_ms": tally.health_ms, "errors": tally.errors}))
+
+
+def start_prober(base: str, duration: float) -> subprocess.Popen:
+    return subprocess.Popen([sys.executable, __file__, "--probe", base, "--duration", str(duration)],
+                            stdout=subprocess.PIPE, text=True)
+
+
+def prober_figures(prober: subprocess.Popen, tally: Tally) -> None:
+    """The prober's latencies and errors, into ``tally``."""
+    try:
+        out, _ = prober.communicate(timeout=REQUEST_TIMEOUT_S + 10)
+        figures = json.loads(out.strip().splitlines()[-1])
+    except (subprocess.TimeoutExpired, ValueError, IndexError) as exc:
+        prober.kill()
+        tally.errors.append(f"health prober: {type(exc).__name__}: {exc}")
+        return
+    tally.health_ms.extend(figures["health_ms"])
+    tally.errors.extend(figures["errors"])
 
 
 def flood(base: str, tally: Tally, count: int, stop: threading.Event) -> dict[str, Any]:
@@ -234,9 +257,13 @@ def main() -> None:
     parser.add_argument("--flood", type=int, default=300, help="session creations per flood phase (default 300)")
     parser.add_argument("--workers", type=int, default=None, help="the server's heavy workers (default: its own)")
     parser.add_argument("--serve", type=int, default=None, help=argparse.SUPPRESS)  # the server subprocess
+    parser.add_argument("--probe", default=None, help=argparse.SUPPRESS)  # the health prober subprocess
     args = parser.parse_args()
     if args.serve is not None:
         serve(args.serve, args.workers)
+        return
+    if args.probe is not None:
+        probe_health(args.probe, args.duration)
         return
     if not (1 <= args.duration <= 600 and 0 <= args.clients <= 64 and 0 <= args.heavy_clients <= 16
             and 0 <= args.flood <= 10_000):
@@ -309,14 +336,14 @@ def report(args: argparse.Namespace, base: str, server: subprocess.Popen, worker
     # Load.
     stop = threading.Event()
     flooded: dict[str, Any] = {}
-    health_client = httpx.Client(base_url=base, timeout=REQUEST_TIMEOUT_S)
-    workers_threads = [threading.Thread(target=probe_health, args=(health_client, tally, stop))]
+    workers_threads = []
     for i, sid in enumerate(sessions):
         if sid is not None:
             workers_threads.append(threading.Thread(target=loop_steps,
                                                     args=(clients[i], tally, sid, kinds[i][0], stop)))
     workers_threads.append(threading.Thread(target=lambda: flooded.update(flood(base, tally, args.flood, stop))))
     started = time.perf_counter()
+    prober = start_prober(base, args.duration)
     for thread in workers_threads:
         thread.start()
     stop.wait(args.duration)
@@ -324,6 +351,7 @@ def report(args: argparse.Namespace, base: str, server: subprocess.Popen, worker
     for thread in workers_threads:
         thread.join(timeout=REQUEST_TIMEOUT_S + 5)
     elapsed = time.perf_counter() - started
+    prober_figures(prober, tally)
 
     # Every client's own session must have survived the flood; then clean up.
     lost = 0
@@ -336,7 +364,7 @@ def report(args: argparse.Namespace, base: str, server: subprocess.Popen, worker
     with httpx.Client(base_url=base, timeout=REQUEST_TIMEOUT_S) as cleanup:
         for sid in flooded.get("admitted", []):
             cleanup.delete(f"/api/sessions/{sid}")
-    for client in clients + [health_client]:
+    for client in clients:
         client.close()
 
     result = {
