@@ -154,6 +154,9 @@ async def http_error_handler(request: Request, exc: StarletteHTTPException) -> J
     detail = exc.detail if isinstance(exc.detail, str) else json.dumps(jsonable(exc.detail))
     if exc.status_code == 404 and detail == "Not Found":
         detail = f"no route {request.url.path!r}; the API is described at /docs"
+    if exc.status_code == 400 and isinstance(exc.__cause__, RecursionError):  # FastAPI's json.loads of the body
+        field, detail = "body", ("the JSON body nests arrays and objects too deeply to be read; the lab's bodies "
+                                 "nest a few levels")
     headers = dict(getattr(exc, "headers", None) or {})
     if exc.status_code == 405:
         detail = f"{request.method} is not allowed on {request.url.path!r}; see /docs"
