@@ -51,3 +51,16 @@ def assert_every_failure_names_its_mistake(report, hints: dict[str, str], name: 
         for other, hint in hints.items():
             if other != name:
                 assert not any(hint in line for line in found), f"{check} got the hint of {other}"
+
+
+def wait_done(client, submission_id: str, timeout: float = 30.0) -> dict:
+    """Poll ``GET /api/submissions/{id}`` until it is graded (done or error); its body."""
+    import time
+
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        body = client.get(f"/api/submissions/{submission_id}").json()
+        if body["status"] in ("done", "error"):
+            return body
+        time.sleep(0.05)
+    raise AssertionError(f"submission {submission_id} not graded in {timeout} s")

@@ -12,7 +12,7 @@ from lab.lessons.format import LessonCatalog
 from lab.lessons.service import LessonService
 from lab.lessons.store import SubmissionQueue
 
-from lesson_helpers import FIXTURES, submission
+from lesson_helpers import FIXTURES, submission, wait_done
 
 
 def make_service(tmp_path, **kwargs) -> LessonService:
@@ -30,16 +30,6 @@ def upload(client, text: bytes | str, filename="mine.py", lesson="00-toy", **dat
     payload = text.encode() if isinstance(text, str) else text
     return client.post(f"/api/lessons/{lesson}/submissions", files={"file": (filename, payload, "text/x-python")},
                        data=data)
-
-
-def wait_done(client, submission_id, timeout=30.0):
-    deadline = time.monotonic() + timeout
-    while time.monotonic() < deadline:
-        body = client.get(f"/api/submissions/{submission_id}").json()
-        if body["status"] in ("done", "error"):
-            return body
-        time.sleep(0.05)
-    raise AssertionError(f"submission {submission_id} not graded in {timeout} s")
 
 
 def test_list_and_describe_lessons(client):

@@ -29,7 +29,7 @@ from lab.lessons.sandbox import Sandbox, SubmissionFailure
 from lab.lessons.service import LessonService
 from lab.lessons.store import SubmissionQueue
 
-from lesson_helpers import FIXTURES, REPO
+from lesson_helpers import FIXTURES, REPO, wait_done
 
 # On CI (CI=true) these always run: .ci/run installs bubblewrap, and a sandbox that cannot start must fail there.
 pytestmark = pytest.mark.skipif(not os.environ.get("CI") and isolation.probe(isolation.Isolation()) is not None,
@@ -317,10 +317,10 @@ def test_over_rest_an_attack_scores_zero_and_changes_nothing_else(tmp_path, monk
         .replace("MARKER", str(marker))
     with TestClient(build_app(service)) as client:
         victim = _submit(client, (FIXTURES / "lessons" / "00-toy" / "starter.py").read_text())
-        victim_done = _wait(client, victim)
-        attacker_done = _wait(client, _submit(client, attack))
+        victim_done = wait_done(client, victim)
+        attacker_done = wait_done(client, _submit(client, attack), timeout=60.0)
         assert attacker_done["status"] == "done" and attacker_done["score"] == 0
-        assert _wait(client, victim)["score"] == victim_done["score"] == 0
+        assert wait_done(client, victim)["score"] == victim_done["score"] == 0
         assert client.get("/api/lessons").status_code == 200
         everything = client.get(f"/api/submissions/{victim}").text + client.get(
             f"/api/lessons/00-toy/submissions", headers={"Authorization": "Bearer token-that-must-stay-secret"}).text
@@ -333,16 +333,6 @@ def _submit(client, source: str) -> str:
     response = client.post("/api/lessons/00-toy/submissions", files={"file": ("mine.py", source.encode(), "text/x-python")})
     assert response.status_code == 202, response.text
     return response.json()["id"]
-
-
-def _wait(client, submission_id: str, timeout: float = 60.0) -> dict:
-    deadline = time.monotonic() + timeout
-    while time.monotonic() < deadline:
-        body = client.get(f"/api/submissions/{submission_id}").json()
-        if body["status"] in ("done", "error"):
-            return body
-        time.sleep(0.1)
-    raise AssertionError(f"submission {submission_id} not graded in {timeout} s")
 
 
 def test_without_bubblewrap_grading_is_refused_with_the_fix(toy_lesson, monkeypatch):
