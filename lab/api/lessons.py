@@ -23,6 +23,7 @@ import json
 import os
 import subprocess
 import sys
+import threading
 from typing import Annotated, Any, AsyncIterator, Literal
 
 from fastapi import APIRouter, FastAPI, File, Form, Path, Query, Request, UploadFile
@@ -176,24 +177,25 @@ sys.stdout.write(json.dumps(out))
 #: Memory (bytes) and CPU seconds the parsing child may use; a 256 KiB file parses in about a second.
 PARSE_MEMORY_BYTES = 1024 * 2**20
 PARSE_SECONDS = 10
+#: Parsing children running at once (more uploads wait for one to finish).
+_PARSES = threading.BoundedSemaphore(2)
 
 
 def check_syntax(text: str, filename: str) -> None:
-    """Parse ``text`` as Python (``ast.parse``) in a child process; InvalidValue (422) on ``file`` when it does not parse.
+    """Parse ``text`` as Python (``ast.parse``) in a child process; InvalidValue (422) on ``file`` if it does not parse.
 
-    The child (``python -I``, memory and CPU limited) keeps the server's process and its event
-    loop free while a large file parses (the parser holds the GIL for its whole run), and turns the
-    parser's RecursionError or MemoryError on deeply nested code into an error naming the file
-    rather than a crash.
+    The child (``python -I``, memory and CPU limited, two at a time) keeps the server's process
+    and its event loop free while a large file parses (the parser holds the GIL for its whole
+    run), and turns the parser's RecursionError or MemoryError on deeply nested code into an error
+    naming the file rather than a crash.
     """
     script = _PARSE_SCRIPT % (PARSE_MEMORY_BYTES, PARSE_MEMORY_BYTES, PARSE_SECONDS, PARSE_SECONDS)
     try:
-        done = subprocess.run([sys.executable, "-I", "-S", "-c", script, filename], input=text.encode("utf-8"),
-                              capture_output=True, timeout=2 * PARSE_SECONDS, check=False)
+        with _PARSES:
+            done = subprocess.run([sys.executable, "-I", "-S", "-c", script, filename], input=text.encode("utf-8"),
+                                  capture_output=True, timeout=2 * PARSE_SECONDS, check=False)
         outcome = json.loads(done.stdout or b"{}")
-    except subprocess.TimeoutExpired:
-        outcome = {}
-    except ValueError:  # a child killed by its limits writes nothing parsable
+    except (subprocess.TimeoutExpired, ValueError):  # a child stopped by its limits writes nothing parsable
         outcome = {}
     if outcome.get("ok"):
         return
