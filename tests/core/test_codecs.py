@@ -129,8 +129,8 @@ def test_image_size_of_progressive_jpeg_gif_and_truncated_or_foreign_files():
     assert codecs.image_size(io.BytesIO(progressive.tobytes())) == (53, 37)
     gif = b"GIF89a" + (53).to_bytes(2, "little") + (37).to_bytes(2, "little") + b"\x00" * 20
     assert codecs.image_size(io.BytesIO(gif)) == (53, 37)
-    for junk in [b"", b"\x89PNG\r\n\x1a\n", b"\xff\xd8\xff", b"\xff\xd8" + b"\xff" * 100_000, b"II*\x00\xff\xff\xff\xff",
-                 b"BM", b"P6 12", b"hello", b'{"pixels": []}']:
+    for junk in [b"", b"\x89PNG\r\n\x1a\n", b"\xff\xd8\xff", b"\xff\xd8" + b"\xff" * 100_000,
+                 b"II*\x00\xff\xff\xff\xff", b"BM", b"P6 12", b"hello", b'{"pixels": []}']:
         assert codecs.image_size(io.BytesIO(junk)) is None, junk[:12]
 
 
