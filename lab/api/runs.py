@@ -24,7 +24,7 @@ import time
 import weakref
 from collections import deque
 from dataclasses import dataclass
-from queue import SimpleQueue
+from queue import Empty, SimpleQueue
 from typing import Any, Callable, TypeVar
 
 from lab.api.errors import error_body, jsonable, log
@@ -46,6 +46,8 @@ DEFAULT_QUEUE = 32
 LIGHT_WORKERS = 2
 #: A step whose last successful run in the session took less than this (seconds) runs on the light pool.
 LIGHT_SECONDS = 0.1
+#: A worker idle this long (seconds) ends; the pool starts another when work comes.
+WORKER_IDLE_SECONDS = 30.0
 #: How much lower the workers' CPU priority is than that of the threads answering requests (Linux nice).
 WORKER_NICENESS = 10
 
@@ -99,12 +101,12 @@ class RunPool:
 
     def start(self, job: Callable[[], None]) -> None:
         """Run ``job`` on a worker (its place held by :meth:`reserve`) as soon as one is free."""
-        with self._lock:
-            while len(self._threads) < self.workers:
+        with self._lock:  # with the lock, so that a worker about to leave sees the job
+            self._jobs.put(job)
+            if len(self._threads) < self.workers:
                 thread = threading.Thread(target=self._work, name=f"lab-worker-{len(self._threads)}", daemon=True)
                 self._threads.append(thread)
                 thread.start()
-        self._jobs.put(job)
 
     def submit(self, job: Callable[[], None]) -> bool:
         """:meth:`reserve` then :meth:`start`; True when it starts at once, False when it waits its turn."""
@@ -130,7 +132,14 @@ class RunPool:
     def _work(self) -> None:
         lower_priority(WORKER_NICENESS)
         while True:
-            job = self._jobs.get()
+            try:
+                job = self._jobs.get(timeout=WORKER_IDLE_SECONDS)
+            except Empty:
+                with self._lock:
+                    if self._jobs.empty():  # idle: leave (start makes a new worker when one is needed)
+                        self._threads.remove(threading.current_thread())
+                        return
+                continue
             with self._lock:
                 self._running += 1
             started = time.perf_counter()

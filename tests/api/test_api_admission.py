@@ -17,6 +17,7 @@ import pytest
 from api_helpers import assert_error, make_client, new_session, running_step, wait_until
 from fastapi.testclient import TestClient
 
+import lab.api.runs
 from lab.api.runs import WORKER_NICENESS, RunPool
 from lab.core import SessionStore
 
@@ -97,6 +98,11 @@ def _gated_ready(client: TestClient) -> str:
     return sid
 
 
+def _heavy_idle(client: TestClient) -> bool:
+    runs = client.get("/api/health").json()["runs"]["heavy"]
+    return runs["running"] == runs["queued"] == 0
+
+
 def test_runs_beyond_the_pool_wait_in_its_queue_then_get_429_and_health_answers(gate):
     with make_client(_store(), workers=1, queued_runs=1) as client:
         first, second = _gated_ready(client), _gated_ready(client)
@@ -121,10 +127,12 @@ def test_runs_beyond_the_pool_wait_in_its_queue_then_get_429_and_health_answers(
 
         gate.release(100)
         wait_until(lambda: client.get(f"/api/sessions/{second}").json()["steps"]["crawl"] == "done", "the queued run")
+        wait_until(lambda: _heavy_idle(client), "the worker to give its place back")
         assert client.post(f"/api/sessions/{third}/steps/add_noise").status_code == 200
 
 
-def test_a_step_known_to_be_quick_skips_the_heavy_queue(gate):
+def test_a_step_known_to_be_quick_skips_the_heavy_queue(gate, monkeypatch):
+    monkeypatch.setattr(lab.api.runs, "LIGHT_SECONDS", 3600.0)  # any recorded run counts as quick: no timing
     with make_client(_store(), workers=1, queued_runs=0) as client:
         heavy, quick, fresh = _gated_ready(client), _gated_ready(client), new_session(client, "gated")
         client.post(f"/api/sessions/{heavy}/steps/crawl", params={"wait": "false"})
@@ -170,3 +178,16 @@ def test_workers_run_at_a_lower_cpu_priority_than_the_threads_answering_requests
     assert done.wait(20)
     here = os.getpriority(os.PRIO_PROCESS, threading.get_native_id())
     assert seen[0] == min(19, here + WORKER_NICENESS)
+
+
+def test_idle_workers_leave_and_the_pool_starts_new_ones_for_new_work(monkeypatch):
+    monkeypatch.setattr(lab.api.runs, "WORKER_IDLE_SECONDS", 0.05)
+    pool = RunPool(workers=2, queue=2)
+    done: list[int] = []
+    for i in range(4):
+        pool.submit(lambda i=i: done.append(i))
+    wait_until(lambda: len(done) == 4 and not pool._threads, "the idle workers to leave")
+    pool.submit(lambda: done.append(4))
+    wait_until(lambda: len(done) == 5, "a new worker to run the next job")
+    wait_until(lambda: pool.stats() == {"workers": 2, "running": 0, "queued": 0, "max_queued": 2},
+               "every place to be given back")
