@@ -27,6 +27,7 @@ from lab.api import sessions as sessions_router
 from lab.api import values as values_router
 from lab.api.deps import ModuleCatalog
 from lab.api.errors import BodyLimitMiddleware, LabJSONResponse, register_error_handlers
+from lab.api.openapi import install_openapi
 from lab.api.runs import DEFAULT_QUEUE, DEFAULT_WORKERS, LIGHT_WORKERS, RunPool, RunPools, RunRegistry
 from lab.core.pipeline import Pipeline
 from lab.core.store import SessionStore
@@ -134,4 +135,5 @@ def create_app(store: SessionStore | None = None, *, modules: Callable[[str], Pi
 
     if STATIC_DIR.is_dir():
         app.mount("/static", StaticFiles(directory=STATIC_DIR), name="static")
+    install_openapi(app, module_names=app.state.catalog.names)
     return app

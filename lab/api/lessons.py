@@ -133,11 +133,17 @@ def describe_lesson(request: Request, lesson_id: LessonId) -> LabJSONResponse:
                             "submissions_url": f"/api/lessons/{lesson.id}/submissions"})
 
 
-@router.get("/lessons/{lesson_id}/starter.py", summary="Download the starter file", response_class=PlainTextResponse)
-def starter_file(request: Request, lesson_id: LessonId) -> PlainTextResponse:
+class PythonSourceResponse(PlainTextResponse):
+    """A Python file as UTF-8 text: ``text/x-python``, as the OpenAPI document says."""
+
+    media_type = "text/x-python"
+
+
+@router.get("/lessons/{lesson_id}/starter.py", summary="Download the starter file", response_class=PythonSourceResponse)
+def starter_file(request: Request, lesson_id: LessonId) -> PythonSourceResponse:
     lesson = get_lesson_service(request).catalog.get(lesson_id)
-    return PlainTextResponse(lesson.starter, media_type="text/x-python; charset=utf-8",
-                             headers={"Content-Disposition": f'attachment; filename="{lesson.id}-starter.py"'})
+    return PythonSourceResponse(lesson.starter,
+                                headers={"Content-Disposition": f'attachment; filename="{lesson.id}-starter.py"'})
 
 
 def check_upload(payload: bytes, filename: str, *, limit: int) -> str:
@@ -212,7 +218,12 @@ def check_syntax(text: str, filename: str) -> None:
                          "Answers 202 with the submission's id at once; grading runs in the background. Poll "
                          "GET /api/submissions/{id} for the result (Gradescope's results.json).",
              responses=error_responses({413: "The file is too large.", 415: "The file is not Python source text.",
-                                        422: "The file does not parse as Python."}))
+                                        422: "The file does not parse as Python."}),
+             openapi_extra={"requestBody": {"content": {"multipart/form-data": {"encoding": {"file": {
+                 "contentType": "text/x-python",
+                 "headers": {"Content-Disposition": {
+                     "description": "The file part's name ends in `.py` (415 otherwise).",
+                     "schema": {"type": "string", "example": 'form-data; name="file"; filename="solution.py"'}}}}}}}}})
 async def submit(request: Request, lesson_id: LessonId,
                  file: Annotated[UploadFile, File(description="The student's .py file.")],
                  student: Annotated[str, Form(max_length=200, description="Who submits (shown to the instructor).")] = ""

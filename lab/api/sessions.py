@@ -65,7 +65,8 @@ class SessionCreate(BaseModel):
     options: dict[str, Any] = Field(default_factory=dict,
                                     description="Dataset options (their JSON Schema is in GET /api/modules/{module}); "
                                                 "folder datasets take `path`.")
-    seed: int = Field(0, ge=0, le=2**32 - 1, description="Seeds every step's random generator (recorded, replayable).")
+    seed: int = Field(0, ge=0, le=2**32 - 1, strict=True,  # a JSON integer: not false, "3" or 1.5
+                      description="Seeds every step's random generator (recorded, replayable).")
 
 
 def viewer_link(viewer_url: str | None, **query: str) -> str | None:
