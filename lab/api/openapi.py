@@ -16,7 +16,6 @@ from __future__ import annotations
 from typing import Any, Sequence
 
 from fastapi import FastAPI
-from fastapi.openapi.utils import get_openapi
 
 JSON = "application/json"
 
@@ -39,24 +38,22 @@ SESSION_PARAMETER = "session_id"
 
 
 def install_openapi(app: FastAPI, *, module_names: Sequence[str]) -> None:
-    """Make ``app.openapi()`` serve :func:`build_document` (built once, on first request)."""
+    """Make ``app.openapi()`` serve FastAPI's document refined by :func:`refine` (built once, then cached)."""
+    build = app.openapi  # FastAPI's own: builds the document once and keeps it in app.openapi_schema
+
     def openapi() -> dict[str, Any]:
         if app.openapi_schema is None:
-            app.openapi_schema = build_document(app, module_names)
+            refine(build(), module_names)
         return app.openapi_schema
 
     app.openapi = openapi  # type: ignore[method-assign]
 
 
-def build_document(app: FastAPI, module_names: Sequence[str]) -> dict[str, Any]:
-    """FastAPI's document for ``app`` with JSON error bodies, the module enum and the links."""
-    document = get_openapi(title=app.title, version=app.version, openapi_version=app.openapi_version,
-                           summary=app.summary, description=app.description, routes=app.routes,
-                           tags=app.openapi_tags, servers=app.servers)
+def refine(document: dict[str, Any], module_names: Sequence[str]) -> None:
+    """JSON error bodies, the module enum and the links, in place."""
     json_errors(document)
     module_enum(document, module_names)
     add_links(document)
-    return document
 
 
 def _operations(document: dict[str, Any]) -> dict[tuple[str, str], dict[str, Any]]:

@@ -138,7 +138,8 @@ class Aim:
             if "step" in params:
                 params["step"] = _pick(params["step"], [s.name for s in pipeline.steps])
             if "name" in params:
-                params["name"] = _pick(params["name"], sorted({n for s in pipeline.steps for n in (*s.reads, *s.writes)}))
+                names = sorted({n for s in pipeline.steps for n in (*s.reads, *s.writes)})
+                params["name"] = _pick(params["name"], names)
         if "lesson_id" in params:
             params["lesson_id"] = _pick(params["lesson_id"], self.lessons)
         if "submission_id" in params:
