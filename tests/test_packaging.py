@@ -60,7 +60,8 @@ def test_readme_start_command_installs_then_serves():
 def test_readme_urls_are_the_serve_defaults():
     serve = typer.main.get_command(app).commands["serve"]
     defaults = {p.name: p.default for p in serve.params}
-    assert defaults == {"host": "127.0.0.1", "port": 8000, "viewer_port": 8080, "data_root": None}
+    assert defaults == {"host": "127.0.0.1", "port": 8000, "viewer_port": 8080, "data_root": None,
+                        "unsafe_sandbox": False}  # the sandbox is on unless the operator says otherwise
 
 
 def test_pyproject_pins_torch_and_names_the_console_script():
