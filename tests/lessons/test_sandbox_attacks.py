@@ -14,6 +14,7 @@ import os
 import signal
 import socket
 import sqlite3
+import sys
 import tempfile
 import time
 from pathlib import Path
@@ -180,8 +181,19 @@ def test_with_the_hook_off_the_child_is_unprivileged_alone_and_sees_no_host(atta
     facts = attacks.call("whoami").value
     assert facts["uid"] != 0 and facts["euid"] != 0 and facts["gid"] != 0
     assert facts["ppid"] in (0, 1) and facts["pid"] < 16 and facts["hostname"] == "sandbox"
-    assert "home" not in facts["root"] and "tmp" not in facts["root"] and "var" not in facts["root"]
     lab = isolation.lab_dir()
+    # the root holds the system folders, its directory, and only the paths down to Python and the lab
+    expected = {"bin", "dev", "etc", "lib", "lib32", "lib64", "libx32", "proc", "sbin", "submission", "usr",
+                lab.parts[1], Path(sys.base_prefix).resolve().parts[1], Path(sys.prefix).resolve().parts[1]}
+    assert set(facts["root"]) <= expected, set(facts["root"]) - expected
+    assert set(attacks.call("listing", ("/etc",)).value) <= {"ld.so.cache", "ld.so.conf", "ld.so.conf.d", "localtime"}
+    secret = Path(tempfile.mkdtemp()) / "host-secret.txt"  # beside the lab when it lives under /tmp (CI's clones)
+    secret.write_text("host secret")
+    try:
+        assert attacks.call("read", (str(secret),)).value.startswith("refused FileNotFoundError")
+    finally:
+        secret.unlink()
+        secret.parent.rmdir()
     assert sorted(attacks.call("listing", (str(lab),)).value) == ["__init__.py", "core", "lessons"]
     assert attacks.call("listing", (str(lab / "lessons"),)).value == ["__init__.py", "child.py", "wire.py"]
     for hidden in (lab / "modules" / "calibration.py", REPO / "lessons" / "01-calibration" / "tasks.toml",
