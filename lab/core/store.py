@@ -37,6 +37,28 @@ def _mib(nbytes: int) -> str:
     return f"{mib:.1f} MiB" if mib < 10 else f"{mib:.0f} MiB"
 
 
+def link_outside(path: str | os.PathLike, root: Path) -> str | None:
+    """The first entry of folder ``path`` (or ``path`` itself) that is a symbolic link resolving outside ``root``.
+
+    Loaders read a folder's own files, so its entries are what is checked, one by one; None when
+    every entry stays inside ``root`` (a resolved folder).
+    """
+    target = Path(path).expanduser()
+    try:
+        entries = sorted(target.iterdir()) if target.is_dir() else [target]
+    except OSError:  # unreadable: the loader reports it
+        return None
+    for entry in entries:
+        if entry.is_symlink():
+            try:
+                resolved = entry.resolve()
+            except (OSError, RuntimeError):  # a loop of links resolves nowhere: refused as well
+                return entry.name
+            if resolved != root and root not in resolved.parents:
+                return entry.name
+    return None
+
+
 class SessionStore:
     """Holds live sessions for the API and the viewer (one process, shared by both).
 
@@ -82,7 +104,7 @@ class SessionStore:
 
         The folder (or file) must resolve inside the root, and so must each of its files: a file
         that is a symbolic link to somewhere outside is refused by name
-        (:func:`lab.data.files.link_outside`).
+        (:func:`link_outside`).
         """
         if self.data_root is None or not spec.takes_path:
             return
@@ -93,8 +115,6 @@ class SessionStore:
         if resolved != self.data_root and self.data_root not in resolved.parents:
             raise Forbidden("path", f"{str(path)!r} is outside the folder this server reads data from "
                                     f"({self.data_root}); put the data there or ask whoever runs the server")
-        from lab.data.files import link_outside  # lab.data imports lab.core
-
         escaping = link_outside(resolved, self.data_root)
         if escaping is not None:
             raise Forbidden("path", f"{escaping!r} in {str(path)!r} is a symbolic link to outside the folder this "

@@ -4,14 +4,12 @@ Shared by the loaders of a user's photos (:func:`lab.data.two_view.photos`, :fun
 :mod:`lab.data.stereo`). Files are decoded by OpenCV's ``imread`` (any depth, alpha dropped, BGR turned
 into RGB by :func:`lab.core.codecs.image_from_cv2`) after their header passed the pixel budget
 (:data:`lab.core.budgets.MAX_IMAGE_PIXELS`): a huge file is refused by name, never decoded.
-:func:`link_outside` finds the files of a folder that are symbolic links out of a server's data root.
 """
 
 from __future__ import annotations
 
 import glob
 import os
-from pathlib import Path
 
 import numpy as np
 
@@ -72,26 +70,4 @@ def read_images(files: list[str]) -> list[Image]:
     return [image_from_cv2(read_image_file(file), name=os.path.basename(file)) for file in files]
 
 
-def link_outside(path: str | os.PathLike, root: Path) -> str | None:
-    """The first entry of folder ``path`` (or ``path`` itself) that is a symbolic link resolving outside ``root``.
-
-    Loaders read a folder's own files, so its entries are what is checked, one by one; None when
-    every entry stays inside ``root`` (a resolved folder).
-    """
-    target = Path(path).expanduser()
-    try:
-        entries = sorted(target.iterdir()) if target.is_dir() else [target]
-    except OSError:  # unreadable: the loader reports it
-        return None
-    for entry in entries:
-        if entry.is_symlink():
-            try:
-                resolved = entry.resolve()
-            except (OSError, RuntimeError):  # a loop of links resolves nowhere: refused as well
-                return entry.name
-            if resolved != root and root not in resolved.parents:
-                return entry.name
-    return None
-
-
-__all__ = ["IMAGE_SUFFIXES", "check_folder", "list_images", "read_image_file", "read_images", "link_outside"]
+__all__ = ["IMAGE_SUFFIXES", "check_folder", "list_images", "read_image_file", "read_images"]

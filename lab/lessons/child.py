@@ -36,7 +36,7 @@ import os
 import sys
 
 from lab.lessons.wire import FRAME as HEADER
-from lab.lessons.wire import WireError, decode, encode
+from lab.lessons.wire import WireError, decode, encode, frame
 
 
 # --- framing (shared with the parent) -----------------------------------------------------------
@@ -61,7 +61,7 @@ def read_frame(fd: int) -> bytes | None:
 
 
 def write_frame(fd: int, payload: bytes) -> None:
-    data = memoryview(HEADER.pack(len(payload)) + payload)
+    data = memoryview(frame(payload))
     while data:
         written = os.write(fd, data)
         data = data[written:]
@@ -443,10 +443,10 @@ def main() -> None:
                  if callable(value) and getattr(value, "__module__", None) == "submission"}
     reply({"kind": "ready", "functions": functions, "printed": capture.take(), "violations": list(guard.violations)})
     while True:
-        frame = read_frame(request_fd)
-        if frame is None:
+        request_frame = read_frame(request_fd)
+        if request_frame is None:
             os._exit(0)
-        request = decode(frame)
+        request = decode(request_frame)
         guard.violations.clear()
         try:
             result = getattr(module, request["name"])(*request["args"], **request["kwargs"])

@@ -46,7 +46,7 @@ from lab.lessons import isolation as isolation_module
 from lab.lessons.format import Limits
 from lab.lessons.isolation import WORKDIR, Isolation, default_isolation, lab_dir, python_roots
 from lab.lessons.wire import FRAME as HEADER
-from lab.lessons.wire import WireError, decode, encode
+from lab.lessons.wire import WireError, decode, encode, frame
 
 #: Modules the child imports before it locks itself down (the types step inputs use).
 PRELOAD = ("lab.core.values", "lab.core.errors")
@@ -493,7 +493,7 @@ class Sandbox:
         return CallResult(reply["value"], printed, violations, seconds, flooded)
 
     def _send(self, payload: bytes, deadline: float) -> None:
-        data = memoryview(HEADER.pack(len(payload)) + payload)
+        data = memoryview(frame(payload))
         fd = self._request_fd
         assert fd is not None
         while data:
