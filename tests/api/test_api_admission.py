@@ -9,7 +9,6 @@ No timing is asserted: only what is answered.
 from __future__ import annotations
 
 import os
-import sys
 import threading
 from collections import Counter
 
@@ -169,7 +168,6 @@ def test_the_schema_declares_429_and_503_with_retry_after():
             assert responses[code]["content"]["application/json"]["schema"]["$ref"].endswith("/ErrorBody")
 
 
-@pytest.mark.skipif(not sys.platform.startswith("linux"), reason="per-thread nice is Linux's")
 def test_workers_run_at_a_lower_cpu_priority_than_the_threads_answering_requests():
     pool = RunPool(workers=1, queue=0)
     seen: list[int] = []
