@@ -201,11 +201,9 @@ def _open(module: str, dataset: str | None, options: list[str] | None, settings:
     spec = pipeline.dataset(name)
     try:
         session = open_session(pipeline, spec.name, resolved, seed=seed)
-    except InvalidControl as exc:  # an option's value (the dataset names only the option)
-        raise InvalidControl(f"--option {exc.field}", exc.reason) from None
-    except InvalidValue as exc:
-        field = f"--option {exc.field[len('options.'):]}" if exc.field.startswith("options.") else exc.field
-        raise InvalidValue(field, exc.reason) from None
+    except (InvalidControl, InvalidValue) as exc:  # an option's name or value: say it as the user wrote it
+        field = f"--option {exc.field.removeprefix('options.')}" if exc.field.startswith("options.") else exc.field
+        raise type(exc)(field, exc.reason) from None
     except LabError:
         raise
     except Exception as exc:  # a loader failing on the user's files

@@ -12,7 +12,6 @@ import shutil
 import subprocess
 import sys
 import types
-from dataclasses import dataclass
 from pathlib import Path
 from typing import Annotated
 
@@ -24,6 +23,7 @@ from typer.testing import CliRunner
 
 import lab
 import lab.cli as cli
+from lab.core.step import step_result, Warnings
 from lab.core import Cameras, ImageSet, Loaded, Pipeline, Range, UnknownName, metric
 from lab.core.codecs import image_from_cv2
 from toy_pipeline import TOY, add_noise, gradients, lift, mean_intensity
@@ -42,9 +42,9 @@ def folder(*, path: str, pattern: str = "*.png") -> Loaded:
                                             for f in files))})
 
 
-@dataclass(frozen=True)
+@step_result
 class Checked:
-    warnings: tuple[str, ...]
+    warnings: Warnings
     image_count: int = metric("images read")
 
 
@@ -62,7 +62,7 @@ def explode(noisy: ImageSet, *, fail: bool = True) -> Annotated[np.ndarray, "deb
     return np.zeros(3)
 
 
-@dataclass(frozen=True)
+@step_result
 class CameraFit:
     K: np.ndarray
     dist: np.ndarray

@@ -2,15 +2,15 @@
 
 from __future__ import annotations
 
-from dataclasses import dataclass
 from typing import Annotated, Generator, Literal
 
 import numpy as np
 
+from lab.core.step import step_result
 from lab.core import Image, ImageSet, Loaded, Pipeline, PointCloud, Progress, Range, metric
 
 
-@dataclass(frozen=True)
+@step_result
 class Noisy:
     """Result of :func:`add_noise`."""
 
@@ -44,7 +44,7 @@ def mean_intensity(noisy: ImageSet, *, scale: Annotated[int, Range(1, 10)] = 1) 
     return np.array([im.pixels.mean() * scale for im in noisy.images])
 
 
-@dataclass(frozen=True)
+@step_result
 class Lifted:
     cloud: PointCloud
     final_loss: float = metric("loss at the last iteration")

@@ -14,13 +14,17 @@ import time
 import typing
 import uuid
 import zlib
+from collections.abc import Callable, Collection, Iterable, Mapping
 from dataclasses import dataclass, field
-from typing import Any, Callable, Iterable
+from pathlib import Path
+from typing import Any, Literal
 
 import numpy as np
 
-from lab.core.errors import Cancelled, InvalidValue, LabError, MissingInput, SessionBusy, StepFailed, UnknownName
-from lab.core.step import Control, Progress, StepSpec, _control_from, _docstring_params, describe_step, result_to_values
+from lab.core.errors import (Cancelled, InvalidControl, InvalidValue, LabError, MissingInput, SessionBusy, StepFailed,
+                             UnknownName)
+from lab.core.step import (Control, Progress, StepSpec, _control_from, _docstring_params, coerce_controls, describe_step,
+                           result_to_values)
 from lab.core.values import value_nbytes
 
 
@@ -58,20 +62,18 @@ class DatasetSpec:
                    summary=doc.split("\n\n", 1)[0].replace("\n", " "), options=options,
                    takes_path=any(o.name == "path" for o in options))
 
-    def load(self, options: dict[str, Any] | None = None) -> Loaded:
-        options = dict(options or {})
-        values: dict[str, Any] = {}
-        for option in self.options:
-            if option.name in options:
-                values[option.name] = option.coerce(options.pop(option.name))
-            elif option.required:
-                raise InvalidValue(f"options.{option.name}", f"dataset {self.name!r} needs option {option.name!r}")
-            else:
-                values[option.name] = option.default
-        if options:
-            raise InvalidValue(f"options.{next(iter(options))}",
-                               f"dataset {self.name!r} has no such option; options are {[o.name for o in self.options]}")
-        return self.loader(**values)
+    def coerce_options(self, options: Mapping[str, Any] | None) -> dict[str, Any]:
+        """Defaults overridden by ``options``, checked as step controls are (:func:`coerce_controls`).
+
+        Raises :class:`InvalidControl` naming the option as ``options.<name>``.
+        """
+        try:
+            return coerce_controls(self.options, options, owner=f"dataset {self.name!r}", noun="option")
+        except InvalidControl as exc:
+            raise InvalidControl(f"options.{exc.field}", exc.reason) from None
+
+    def load(self, options: Mapping[str, Any] | None = None) -> Loaded:
+        return self.loader(**self.coerce_options(options))
 
     def describe(self) -> dict[str, Any]:
         return {"name": self.name, "summary": self.summary, "takes_path": self.takes_path,
@@ -84,9 +86,53 @@ class DatasetSpec:
 Evaluation = Callable[[dict[str, Any], dict[str, Any]], dict[str, float]]
 
 
+#: Why a step is in a :class:`Plan`: it is the target; its outputs are missing; it ran with other
+#: controls than the ones asked for; it reads what a planned step will rewrite.
+PlanReason = Literal["target", "missing", "stale", "dependant"]
+
+
+@dataclass(frozen=True)
+class Plan:
+    """The steps a run will execute, in pipeline order, each with the reason it runs.
+
+    Made by :meth:`Pipeline.plan` (the one place that decides what runs) and executed by
+    :meth:`Session.run_plan`; the viewer, REST, the CLI and the grader all go through both.
+    """
+
+    steps: tuple[str, ...]
+    reasons: Mapping[str, PlanReason]
+    target: tuple[str, ...] = ()
+
+    def __len__(self) -> int:
+        return len(self.steps)
+
+    def to_json(self) -> dict[str, Any]:
+        return {"steps": list(self.steps), "reasons": dict(self.reasons), "target": list(self.target)}
+
+
+@dataclass(frozen=True)
+class Export:
+    """A file format a pipeline can write from a session's state (``vision-lab export``, REST).
+
+    ``reads`` are the state names it needs (a run plans their producers); ``write(state, metrics,
+    out)`` writes the file at ``out`` and returns the path written. ``metrics`` maps step names to
+    the metrics of their last run.
+    """
+
+    format: str
+    summary: str
+    reads: tuple[str, ...]
+    write: Callable[[Mapping[str, Any], Mapping[str, Mapping[str, Any]], Path], Path]
+
+
 @dataclass(frozen=True)
 class Pipeline:
-    """A teaching module: ordered steps, datasets (the first is the default) and evaluations."""
+    """A teaching module: ordered steps, datasets (the first is the default) and evaluations.
+
+    ``exports`` maps a format name to the :class:`Export` that writes it; ``views`` are the state
+    names the viewer's interactions may read by name (checked by a contract test against what the
+    steps and datasets provide, so a rename fails a test instead of a browser).
+    """
 
     name: str
     title: str
@@ -94,16 +140,27 @@ class Pipeline:
     steps: tuple[StepSpec, ...]
     datasets: tuple[DatasetSpec, ...]
     evaluations: dict[str, Evaluation] = field(default_factory=dict)
+    exports: Mapping[str, Export] = field(default_factory=dict)
+    views: frozenset[str] = frozenset()
 
     @classmethod
     def build(cls, *, name: str, title: str, summary: str, steps: Iterable[Callable[..., Any]],
-              datasets: Iterable[Callable[..., Loaded]], evaluations: dict[str, Evaluation] | None = None) -> Pipeline:
+              datasets: Iterable[Callable[..., Loaded]], evaluations: dict[str, Evaluation] | None = None,
+              exports: Iterable[Export] = (), views: Iterable[str] = ()) -> Pipeline:
         specs = tuple(describe_step(f) for f in steps)
         names = [s.name for s in specs]
         if len(set(names)) != len(names):
             raise TypeError(f"pipeline {name}: duplicate step names {names}")
+        by_format = {e.format: e for e in exports}
         return cls(name=name, title=title, summary=summary, steps=specs,
-                   datasets=tuple(DatasetSpec.of(d) for d in datasets), evaluations=dict(evaluations or {}))
+                   datasets=tuple(DatasetSpec.of(d) for d in datasets), evaluations=dict(evaluations or {}),
+                   exports=by_format, views=frozenset(views))
+
+    def export(self, fmt: str) -> Export:
+        """The :class:`Export` of format ``fmt``; :class:`UnknownName` lists the formats there are."""
+        if fmt not in self.exports:
+            raise UnknownName("format", f"module {self.name!r} exports no {fmt!r}; its formats are {sorted(self.exports)}")
+        return self.exports[fmt]
 
     def step(self, name: str) -> StepSpec:
         for spec in self.steps:
@@ -119,11 +176,88 @@ class Pipeline:
                 return spec
         raise UnknownName("dataset", f"module {self.name!r} has no dataset {name!r}; datasets are {[d.name for d in self.datasets]}")
 
-    def producer(self, value_name: str) -> StepSpec | None:
+    def producer(self, value_name: str, *, before: str | None = None) -> StepSpec | None:
+        """The step that writes ``value_name``: the first in the pipeline, or with ``before`` the last
+        one ahead of that step (the one whose output that step reads). None for a dataset value."""
+        if before is None:
+            return next((spec for spec in self.steps if value_name in spec.writes), None)
+        found = None
         for spec in self.steps:
+            if spec.name == before:
+                return found
             if value_name in spec.writes:
-                return spec
-        return None
+                found = spec
+        raise UnknownName("step", f"module {self.name!r} has no step {before!r}")
+
+    def plan(self, target: str | Iterable[str] | None, available: Collection[str], *,
+             stale: Collection[str] = (), dependants: bool = False) -> Plan:
+        """The steps to run, in pipeline order, to bring ``target`` up to date from data flow.
+
+        ``available`` are the state names present; ``stale`` the steps whose outputs are out of date
+        (they ran with other controls). With a target (a step name or several) the plan holds the
+        targets and, recursively, the producer of every input that is missing, stale or rewritten by
+        a planned step — nothing else: ``quilt``, which reads only ``sample``, plans only itself. With
+        ``target`` None ("Run all") it holds every step whose outputs are missing or stale and every
+        step that reads what those rewrite. ``dependants`` adds the steps downstream of the plan whose
+        outputs exist (what the run would otherwise drop), so a changed step re-runs what depends on it.
+
+        The producer of an input is the last step ahead of the reader that writes it
+        (:meth:`producer` with ``before``); an input no step writes is the dataset's.
+        """
+        have = set(available)
+        stale_set = set(stale)
+        for name in stale_set:
+            self.step(name)
+        reasons: dict[str, PlanReason] = {}
+
+        def out_of_date(spec: StepSpec) -> PlanReason | None:
+            if spec.name in stale_set:
+                return "stale"
+            if not spec.writes or not have.issuperset(spec.writes):
+                return "missing"
+            return None
+
+        if target is None:
+            targets: tuple[str, ...] = ()
+            for spec in self.steps:
+                reason = out_of_date(spec)
+                if reason is None and self._reads_rewritten(spec, reasons):
+                    reason = "dependant"
+                if reason is not None:
+                    reasons[spec.name] = reason
+        else:
+            targets = (target,) if isinstance(target, str) else tuple(target)
+            for name in targets:
+                reasons[self.step(name).name] = "target"
+            changed = True
+            while changed:  # grow the plan backwards along data flow until nothing more is needed
+                changed = False
+                for spec in [s for s in self.steps if s.name in reasons]:
+                    for value in spec.reads:
+                        producer = self.producer(value, before=spec.name)
+                        if producer is None or producer.name in reasons:
+                            continue
+                        reason = out_of_date(producer) if value in have else "missing"
+                        if reason is None and self._reads_rewritten(producer, reasons):
+                            reason = "dependant"
+                        if reason is not None:
+                            reasons[producer.name] = reason
+                            changed = True
+        if dependants:
+            for spec in self.steps:
+                if spec.name not in reasons and spec.writes and have.issuperset(spec.writes) \
+                        and self._reads_rewritten(spec, reasons):
+                    reasons[spec.name] = "dependant"
+        order = tuple(s.name for s in self.steps if s.name in reasons)
+        return Plan(steps=order, reasons={name: reasons[name] for name in order}, target=targets)
+
+    def _reads_rewritten(self, spec: StepSpec, planned: Mapping[str, Any]) -> bool:
+        """Whether ``spec`` reads a value that a planned step ahead of it writes."""
+        for value in spec.reads:
+            producer = self.producer(value, before=spec.name)
+            if producer is not None and producer.name in planned:
+                return True
+        return False
 
     def input_annotation(self, value_name: str) -> Any:
         """The type a state value must have: from a step that reads it, else one that writes it."""
@@ -153,6 +287,15 @@ class Pipeline:
                 "datasets": [d.describe() for d in self.datasets]}
 
 
+#: How a run ended: its outputs were written, it raised, or the user stopped it.
+RunStatus = Literal["ok", "failed", "cancelled"]
+
+#: What :meth:`Session.step_status` says of a step: its outputs exist and match the controls asked
+#: for; they exist but other controls were asked for (or it reads a stale step's outputs); its
+#: inputs exist; some input is missing.
+StepStatus = Literal["done", "stale", "ready", "blocked"]
+
+
 @dataclass(frozen=True)
 class RunRecord:
     """One entry of a session's history: what ran, with which controls, how long, and its metrics."""
@@ -162,7 +305,7 @@ class RunRecord:
     seed: int
     seconds: float
     metrics: dict[str, Any]
-    status: str  # "ok" | "failed" | "cancelled"
+    status: RunStatus
     error: str = ""
     warnings: tuple[str, ...] = ()
     replaced: bool = False
@@ -190,6 +333,10 @@ def _jsonable(value: Any) -> Any:
 
 
 ProgressCallback = Callable[[str, Progress], None]
+#: Called after each step of a plan with the step's record (the viewer redraws, REST updates a run).
+StepCallback = Callable[[RunRecord], None]
+#: Params of several steps: ``{step name: {control: value}}``.
+StepParams = Mapping[str, Mapping[str, Any]]
 
 
 class Session:
@@ -218,6 +365,8 @@ class Session:
         self.last_used = time.time()
         self.listeners: list[ProgressCallback] = []
         self.version = 0  # bumped on every change of state, for viewers to notice
+        #: The controls each step's outputs in ``state`` were computed with (dropped with them).
+        self.ran_with: dict[str, dict[str, Any]] = {}
 
     # --- reading -------------------------------------------------------------------------------
     def get(self, name: str) -> Any:
@@ -230,17 +379,39 @@ class Session:
     def nbytes(self) -> int:
         return value_nbytes(self.state)
 
-    def step_status(self) -> dict[str, str]:
-        """``done`` (outputs present), ``ready`` (inputs present) or ``blocked`` for every step."""
-        status = {}
+    def step_status(self, params: StepParams | None = None) -> dict[str, StepStatus]:
+        """:data:`StepStatus` of every step; ``params`` are the controls a front end shows (stale when
+        a done step ran with others, and so is every done step downstream of it)."""
+        stale = self.stale(params) if params else set()
+        status: dict[str, StepStatus] = {}
         for spec in self.pipeline.steps:
             if spec.writes and all(w in self.state for w in spec.writes):
-                status[spec.name] = "done"
+                status[spec.name] = "stale" if spec.name in stale else "done"
             elif all(i.optional or i.name in self.state for i in spec.inputs):
                 status[spec.name] = "ready"
             else:
                 status[spec.name] = "blocked"
         return status
+
+    def stale(self, params: StepParams | None) -> set[str]:
+        """Steps whose outputs exist but were computed with other controls than ``params`` asks for,
+        and the steps downstream of them that have outputs. A step ``params`` does not name is not
+        compared (it keeps what it ran with); invalid controls raise :class:`InvalidControl`."""
+        changed: list[str] = []
+        for name, controls in (params or {}).items():
+            spec = self.pipeline.step(name)
+            if name in self.ran_with and spec.coerce_controls(controls) != self.ran_with[name]:
+                changed.append(name)
+        stale = set(changed)
+        for spec in self.pipeline.downstream(w for name in changed for w in self.pipeline.step(name).writes):
+            if spec.name in self.ran_with:
+                stale.add(spec.name)
+        return stale
+
+    def plan(self, target: str | Iterable[str] | None = None, params: StepParams | None = None, *,
+             dependants: bool = False) -> Plan:
+        """:meth:`Pipeline.plan` on this session's state, with the steps ``params`` makes stale."""
+        return self.pipeline.plan(target, self.state.keys(), stale=self.stale(params), dependants=dependants)
 
     def summary(self) -> dict[str, Any]:
         return {"id": self.id, "module": self.pipeline.name, "dataset": self.dataset,
@@ -272,6 +443,7 @@ class Session:
                 for name in spec.writes:
                     self.state.pop(name, None)
                 self.metrics.pop(spec.name, None)
+                self.ran_with.pop(spec.name, None)
                 self._invalidate(spec.writes)
             self.version += 1
 
@@ -281,6 +453,19 @@ class Session:
             for out in spec.writes:
                 state.pop(out, None)
             self.metrics.pop(spec.name, None)
+            self.ran_with.pop(spec.name, None)
+
+    def fork(self, *, session_id: str | None = None) -> Session:
+        """A new session with a copy of this one's state, truth, history and metrics (values are
+        shared, not copied: steps never mutate their inputs). The grader forks the reference run
+        before a student's step; the viewer forks to try a change without losing the original."""
+        with self._exclusive():
+            twin = Session(self.pipeline, Loaded(dict(self.state), dict(self.truth), self.description),
+                           dataset=self.dataset, options=self.options, seed=self.seed, session_id=session_id)
+            twin.history = list(self.history)
+            twin.metrics = {step: dict(values) for step, values in self.metrics.items()}
+            twin.ran_with = {step: dict(values) for step, values in self.ran_with.items()}
+            return twin
 
     def _exclusive(self):
         if not self.lock.acquire(blocking=False):
@@ -356,8 +541,8 @@ class Session:
             result = func(*args, **kwargs)
             if inspect.isgenerator(result):
                 result = self._drive(step, result, on_progress)
-            values, metrics = result_to_values(spec, result)
-            warnings = tuple(values.pop("warnings", ()) or ())
+            outcome = result_to_values(spec, result)
+            values, metrics, warnings = outcome.values, outcome.metrics, outcome.warnings
             for name, value in values.items():
                 _check_output(spec, name, value)
         except LabError as exc:
@@ -384,6 +569,7 @@ class Session:
                            replaced=replaced, started=started)
         self.state = state
         self.metrics[step] = metrics
+        self.ran_with[step] = dict(controls)
         self.history.append(record)
         return record
 
@@ -405,16 +591,34 @@ class Session:
         finally:
             generator.close()
 
-    def run_until(self, step: str, params: dict[str, dict[str, Any]] | None = None, **kwargs) -> list[RunRecord]:
-        """Run every step from the first one not done up to and including ``step``."""
-        target = self.pipeline.step(step)
-        records = []
-        for spec in self.pipeline.steps:
-            if spec.name == target.name or self.step_status()[spec.name] != "done":
-                records.append(self.run(spec.name, (params or {}).get(spec.name), **kwargs))
-            if spec.name == target.name:
-                break
+    def run_plan(self, plan: Plan, params: StepParams | None = None, *,
+                 overrides: Mapping[str, Callable[..., Any]] | None = None,
+                 on_step: StepCallback | None = None, should_stop: Callable[[], bool] | None = None,
+                 on_progress: ProgressCallback | None = None, device: str | None = None) -> list[RunRecord]:
+        """Run the steps of ``plan`` in order, each with its controls from ``params`` (defaults else).
+
+        Every step's controls are checked before the first runs. ``overrides`` replace steps by name
+        (a student's function). ``on_step`` gets each record as it is made; ``should_stop`` is asked
+        between steps and ends the run early (:class:`Cancelled`). A failing step raises and the
+        steps after it do not run; the records of those that ran are in :attr:`history`.
+        """
+        params = params or {}
+        for name in plan.steps:
+            self.pipeline.step(name).coerce_controls(params.get(name))
+        records: list[RunRecord] = []
+        for name in plan.steps:
+            if should_stop is not None and should_stop():
+                raise Cancelled(name, "cancelled by the user before this step")
+            record = self.run(name, params.get(name), override=(overrides or {}).get(name),
+                              on_progress=on_progress, device=device)
+            records.append(record)
+            if on_step is not None:
+                on_step(record)
         return records
+
+    def run_until(self, step: str | None, params: StepParams | None = None, **kwargs: Any) -> list[RunRecord]:
+        """Plan ``step`` (every step when None) on this state and run the plan (:meth:`run_plan`)."""
+        return self.run_plan(self.plan(step, params), params, **kwargs)
 
 
 def _check_output(spec: StepSpec, name: str, value: Any) -> None:
@@ -445,4 +649,5 @@ def open_session(pipeline: Pipeline, dataset: str | None = None, options: dict[s
     return Session(pipeline, loaded, dataset=spec.name, options=options, seed=seed, session_id=session_id)
 
 
-__all__ = ["Loaded", "DatasetSpec", "Pipeline", "RunRecord", "Session", "open_session", "default_device"]
+__all__ = ["DatasetSpec", "Export", "Loaded", "Pipeline", "Plan", "PlanReason", "RunRecord", "RunStatus", "Session",
+           "StepParams", "StepStatus", "default_device", "open_session"]

@@ -22,7 +22,8 @@ import inspect
 import re
 import typing
 from dataclasses import dataclass
-from typing import Any, Annotated, Callable, Literal
+from collections.abc import Callable, Mapping
+from typing import Annotated, Any, Literal, TypeVar, dataclass_transform, get_args
 
 import numpy as np
 
@@ -30,6 +31,24 @@ from lab.core.errors import InvalidControl
 
 #: Keyword names supplied by the runner, never shown as controls.
 RUNNER_SUPPLIED = frozenset({"rng", "device"})
+
+#: The kinds of control a front end draws: a number field, a checkbox, a text box, a dropdown, a tuple.
+ControlKind = Literal["float", "int", "bool", "str", "choice", "tuple"]
+ScalarKind = Literal["float", "int", "bool", "str"]
+
+_T = TypeVar("_T")
+
+
+class _WarningsMarker:
+    """The marker inside :data:`Warnings` (``Annotated`` metadata): this field goes to the run record."""
+
+    def __repr__(self) -> str:
+        return "Warnings"
+
+
+#: A result field typed ``Warnings`` carries the step's warnings to the run record (and the
+#: viewer's status line); it is never written to state. ``warnings: Warnings = ()``.
+Warnings = Annotated[tuple[str, ...], _WarningsMarker()]
 
 
 @dataclass(frozen=True)
@@ -66,18 +85,43 @@ def metric(description: str = "", *, unit: str = "") -> Any:
     return dataclasses.field(metadata={"metric": True, "description": description, "unit": unit})
 
 
+@dataclass_transform(frozen_default=True, field_specifiers=(dataclasses.field, metric))
+def step_result(cls: type[_T]) -> type[_T]:
+    """Make ``cls`` a frozen dataclass that a step returns: each field is written to state by name.
+
+    The mark is what tells a result apart from a value type: a step annotated ``-> Image`` writes
+    one value (an image), a step annotated ``-> Calibration`` (marked) writes Calibration's fields.
+    Fields declared with :func:`metric` are metrics; a field typed :data:`Warnings` goes to the run
+    record. Corresponds to ``@dataclasses.dataclass(frozen=True)`` plus that mark.
+    """
+    made = dataclasses.dataclass(frozen=True)(cls)
+    made.__step_result__ = True  # type: ignore[attr-defined]
+    return made
+
+
+def is_step_result(annotation: Any) -> bool:
+    """Whether ``annotation`` is a class marked with :func:`step_result` (not one inherited from)."""
+    return isinstance(annotation, type) and annotation.__dict__.get("__step_result__", False) is True
+
+
+def is_warnings(annotation: Any) -> bool:
+    """Whether a result field's annotation is :data:`Warnings`."""
+    return typing.get_origin(annotation) is Annotated and any(
+        isinstance(extra, _WarningsMarker) for extra in get_args(annotation)[1:])
+
+
 @dataclass(frozen=True)
 class Control:
     """One keyword-only parameter of a step, with everything a front end needs to show it."""
 
     name: str
-    kind: str  # "float" | "int" | "bool" | "str" | "choice" | "tuple"
+    kind: ControlKind
     default: Any
     description: str = ""
     minimum: float | None = None
     maximum: float | None = None
     choices: tuple[Any, ...] = ()
-    item_kinds: tuple[str, ...] = ()  # for kind == "tuple"
+    item_kinds: tuple[ScalarKind, ...] = ()  # for kind == "tuple"
     required: bool = False
 
     def json_schema(self) -> dict[str, Any]:
@@ -121,6 +165,28 @@ class Control:
             return tuple(_coerce_scalar(f"{where}[{i}]", k, v, self.minimum, self.maximum)
                          for i, (k, v) in enumerate(zip(self.item_kinds, value)))
         return _coerce_scalar(where, self.kind, value, self.minimum, self.maximum)
+
+
+def coerce_controls(controls: tuple[Control, ...], params: Mapping[str, Any] | None, *,
+                    owner: str, noun: str = "control") -> dict[str, Any]:
+    """Defaults overridden by ``params``, each checked by :meth:`Control.coerce`; unknown names are an error.
+
+    The one way every front end checks a step's controls and a dataset's options: both raise
+    :class:`InvalidControl` naming the control. ``owner`` names the step or dataset in messages.
+    """
+    given = dict(params or {})
+    values: dict[str, Any] = {}
+    for control in controls:
+        if control.name in given:
+            values[control.name] = control.coerce(given.pop(control.name))
+        elif control.required:
+            raise InvalidControl(control.name, f"{owner} needs {control.name!r}")
+        else:
+            values[control.name] = control.default
+    if given:
+        unknown = next(iter(given))
+        raise InvalidControl(unknown, f"{owner} has no {noun} {unknown!r}; {noun}s are {[c.name for c in controls]}")
+    return values
 
 
 def _coerce_scalar(where: str, kind: str, value: Any, minimum: float | None, maximum: float | None) -> Any:
@@ -178,6 +244,7 @@ class Output:
     is_metric: bool = False
     description: str = ""
     unit: str = ""
+    is_warnings: bool = False
 
 
 @dataclass(frozen=True)
@@ -198,8 +265,8 @@ class StepSpec:
 
     @property
     def writes(self) -> tuple[str, ...]:
-        """State names this step writes (a ``warnings`` field goes to the run record, not to state)."""
-        return tuple(o.name for o in self.outputs if not o.is_metric and o.name != "warnings")
+        """State names this step writes (metrics and a :data:`Warnings` field go to the run record)."""
+        return tuple(o.name for o in self.outputs if not o.is_metric and not o.is_warnings)
 
     @property
     def reads(self) -> tuple[str, ...]:
@@ -212,20 +279,9 @@ class StepSpec:
         raise InvalidControl(name, f"step {self.name!r} has no control {name!r}; "
                                    f"controls are {[c.name for c in self.controls]}")
 
-    def coerce_controls(self, params: dict[str, Any] | None) -> dict[str, Any]:
-        """Defaults overridden by ``params``, each checked; unknown names are an error."""
-        params = dict(params or {})
-        values: dict[str, Any] = {}
-        for control in self.controls:
-            if control.name in params:
-                values[control.name] = control.coerce(params.pop(control.name))
-            elif control.required:
-                raise InvalidControl(control.name, "is required")
-            else:
-                values[control.name] = control.default
-        for name in params:
-            self.control(name)  # raises with the list of valid names
-        return values
+    def coerce_controls(self, params: Mapping[str, Any] | None) -> dict[str, Any]:
+        """Defaults overridden by ``params``, each checked; unknown names are an error (:func:`coerce_controls`)."""
+        return coerce_controls(self.controls, params, owner=f"step {self.name!r}")
 
     def json_schema(self) -> dict[str, Any]:
         """JSON Schema of the request body: an object of controls."""
@@ -248,7 +304,7 @@ class StepSpec:
                        for i in self.inputs],
             "controls": self.json_schema(),
             "outputs": [{"name": o.name, "type": type_name(o.annotation)} for o in self.outputs
-                        if not o.is_metric],
+                        if not o.is_metric and not o.is_warnings],
             "metrics": [{"name": o.name, "description": o.description, "unit": o.unit}
                         for o in self.outputs if o.is_metric],
             "long": self.is_generator,
@@ -321,8 +377,9 @@ def _control_from(name: str, annotation: Any, default: Any, description: str) ->
     return Control(kind=_scalar_kind(name, annotation), **common)
 
 
-def _scalar_kind(name: str, annotation: Any) -> str:
-    for kind, cls in (("bool", bool), ("int", int), ("float", float), ("str", str)):
+def _scalar_kind(name: str, annotation: Any) -> ScalarKind:
+    kinds: tuple[tuple[ScalarKind, type], ...] = (("bool", bool), ("int", int), ("float", float), ("str", str))
+    for kind, cls in kinds:
         if annotation is cls:
             return kind
     raise TypeError(f"control {name!r} has annotation {annotation!r}; controls must be float, int, "
@@ -367,11 +424,15 @@ def describe_step(func: Callable[..., Any], *, name: str | None = None) -> StepS
     if is_generator != inspect.isgeneratorfunction(func) and inspect.isgeneratorfunction(func):
         is_generator = True
     outputs: list[Output] = []
-    if dataclasses.is_dataclass(result_type):
-        field_hints = typing.get_type_hints(result_type)
+    if dataclasses.is_dataclass(result_type) and not is_step_result(result_type) and not _is_value_type(result_type):
+        raise TypeError(f"step {name}: returns dataclass {result_type.__name__}, which is neither a value type "
+                        "of lab.core.values nor marked @step_result; mark it to write its fields by name")
+    if is_step_result(result_type):
+        field_hints = typing.get_type_hints(result_type, include_extras=True)
         for f in dataclasses.fields(result_type):
-            outputs.append(Output(f.name, field_hints.get(f.name, f.type), bool(f.metadata.get("metric")),
-                                  f.metadata.get("description", ""), f.metadata.get("unit", "")))
+            hint = field_hints.get(f.name, f.type)
+            outputs.append(Output(f.name, hint, bool(f.metadata.get("metric")), f.metadata.get("description", ""),
+                                  f.metadata.get("unit", ""), is_warnings=is_warnings(hint)))
     elif result_type is not inspect.Parameter.empty and result_type is not None:
         output_name = name
         if typing.get_origin(result_type) is Annotated:  # -> Annotated[np.ndarray, "homographies"]
@@ -385,25 +446,38 @@ def describe_step(func: Callable[..., Any], *, name: str | None = None) -> StepS
                     is_generator=is_generator, runner_args=tuple(runner))
 
 
-def result_to_values(spec: StepSpec, result: Any) -> tuple[dict[str, Any], dict[str, float]]:
-    """Split a step's return value into state values and metrics, checking the type."""
-    one_value = len(spec.outputs) == 1 and spec.outputs[0].annotation is spec.result_type  # -> Annotated[Image, "x"]
-    if dataclasses.is_dataclass(spec.result_type) and not one_value:
-        if not isinstance(result, spec.result_type):
-            raise TypeError(f"step {spec.name} must return {spec.result_type.__name__}, "
-                            f"got {type(result).__name__}")
-        values: dict[str, Any] = {}
-        metrics: dict[str, float] = {}
-        for out in spec.outputs:
-            value = getattr(result, out.name)
-            if out.is_metric:
-                metrics[out.name] = _metric_value(value)
-            else:
-                values[out.name] = value
-        return values, metrics
-    if not spec.outputs:
-        return {}, {}
-    return {spec.outputs[0].name: result}, {}
+def _is_value_type(annotation: Any) -> bool:
+    """A drawn value type (``lab.core.values``): a step returning one writes one value."""
+    return isinstance(annotation, type) and annotation.__module__ == "lab.core.values"
+
+
+@dataclass(frozen=True)
+class StepOutcome:
+    """A step's return value split by destination: state ``values``, ``metrics`` and ``warnings``."""
+
+    values: dict[str, Any]
+    metrics: dict[str, Any]
+    warnings: tuple[str, ...] = ()
+
+
+def result_to_values(spec: StepSpec, result: Any) -> StepOutcome:
+    """Split a step's return value into state values, metrics and warnings, checking the type."""
+    if not is_step_result(spec.result_type):
+        return StepOutcome({spec.outputs[0].name: result} if spec.outputs else {}, {})
+    if not isinstance(result, spec.result_type):
+        raise TypeError(f"step {spec.name} must return {spec.result_type.__name__}, got {type(result).__name__}")
+    values: dict[str, Any] = {}
+    metrics: dict[str, Any] = {}
+    warnings: tuple[str, ...] = ()
+    for out in spec.outputs:
+        value = getattr(result, out.name)
+        if out.is_metric:
+            metrics[out.name] = _metric_value(value)
+        elif out.is_warnings:
+            warnings += tuple(str(w) for w in (value or ()))
+        else:
+            values[out.name] = value
+    return StepOutcome(values, metrics, warnings)
 
 
 def _metric_value(value: Any) -> Any:

@@ -32,11 +32,11 @@ to image ``views[m]`` (the ``m``-th of the sorted unique ``corners.view``).
 
 from __future__ import annotations
 
-from dataclasses import dataclass
 from typing import Annotated, Any, Generator
 
 import numpy as np
 
+from lab.core.step import step_result, Warnings
 from lab.core import (Cameras, Curve, Image, ImageSet, InvalidControl, InvalidValue, Mesh, Pipeline, Points2D, Progress,
                       Range, Segments2D, StepFailed, metric)
 from lab.data.checkerboard import Checkerboard, folder, synthetic
@@ -90,14 +90,14 @@ def _check_stack(value: Any, name: str, shape: tuple[int, ...], count: int | Non
 # ----------------------------------------------------------------------------------------------------
 # 1. Corner detection
 # ----------------------------------------------------------------------------------------------------
-@dataclass(frozen=True)
+@step_result
 class CornerDetection:
     """Result of :func:`detect_corners`."""
 
     corners: Points2D
     board_points: np.ndarray
     views: np.ndarray
-    warnings: tuple[str, ...]
+    warnings: Warnings
     views_found: int = metric("photos in which the whole board was found")
     views_total: int = metric("photos")
 
@@ -418,7 +418,7 @@ def estimate_intrinsics(homographies: np.ndarray, *, zero_skew: bool = False) ->
 # ----------------------------------------------------------------------------------------------------
 # 4. Extrinsics (closed form)
 # ----------------------------------------------------------------------------------------------------
-@dataclass(frozen=True)
+@step_result
 class Extrinsics:
     """Result of :func:`estimate_extrinsics`: board-to-camera poses, one per view."""
 
@@ -508,7 +508,7 @@ def estimate_distortion(corners: Points2D, board_points: np.ndarray, K_init: np.
 # ----------------------------------------------------------------------------------------------------
 # 6. Joint refinement (Levenberg-Marquardt)
 # ----------------------------------------------------------------------------------------------------
-@dataclass(frozen=True)
+@step_result
 class Calibration:
     """Result of :func:`refine_calibration`."""
 

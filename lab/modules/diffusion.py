@@ -69,6 +69,7 @@ from typing import Annotated, Any, Generator, Iterator, Literal
 import numpy as np
 import torch
 
+from lab.core.step import step_result
 from lab.core import Curve, Image, InvalidControl, InvalidValue, Mesh, Pipeline, PointCloud, Progress, Range, metric
 from lab.core.pipeline import Loaded
 
@@ -374,7 +375,7 @@ def signal_to_noise(alphas_cumprod: np.ndarray) -> np.ndarray:
     return abar / (1.0 - abar)
 
 
-@dataclass(frozen=True)
+@step_result
 class ScheduleResult:
     """Result of :func:`noise_schedule`."""
 
@@ -421,7 +422,7 @@ def q_sample(x0: np.ndarray, alpha_bar: float, noise: np.ndarray) -> np.ndarray:
     return alpha_bar ** 0.5 * x0 + (1.0 - alpha_bar) ** 0.5 * noise
 
 
-@dataclass(frozen=True)
+@step_result
 class ForwardResult:
     """Result of :func:`forward_noising`."""
 
@@ -534,7 +535,7 @@ def flow_matching_pair(x_data: torch.Tensor, noise: torch.Tensor, t: torch.Tenso
     return (1 - t) * noise + t * x_data, x_data - noise
 
 
-@dataclass(frozen=True)
+@step_result
 class TrainResult:
     """Result of :func:`train_denoiser`."""
 
@@ -986,7 +987,7 @@ def run_sampler(sampler: str, denoiser: Denoiser, x_T: torch.Tensor, *, steps: i
 # ----------------------------------------------------------------------------------------------------
 # The sample step
 # ----------------------------------------------------------------------------------------------------
-@dataclass(frozen=True)
+@step_result
 class SampleResult:
     """Result of :func:`sample`."""
 
@@ -1123,7 +1124,7 @@ def _schedule(value: Any) -> NoiseSchedule:
 # ----------------------------------------------------------------------------------------------------
 # Lesson steps: one DDIM update on guided noise predictions
 # ----------------------------------------------------------------------------------------------------
-@dataclass(frozen=True)
+@step_result
 class UpdateInputs:
     """Result of :func:`prepare_update`: what one guided DDIM step reads."""
 

@@ -52,11 +52,11 @@ OpenCV's.
 from __future__ import annotations
 
 import functools
-from dataclasses import dataclass
 from typing import Annotated, Any, Literal
 
 import numpy as np
 
+from lab.core.step import step_result, Warnings
 from lab.core import (Cameras, Curve, ImageSet, InvalidValue, Pipeline, PointCloud, Points2D, Range, Segments2D,
                       StepFailed, metric)
 from lab.data.two_view import correspondences, photos, rendered
@@ -777,13 +777,13 @@ _distance_from_best_line = _kernel(_distance_from_best_line_py)
 # ----------------------------------------------------------------------------------------------------
 # 1. Features
 # ----------------------------------------------------------------------------------------------------
-@dataclass(frozen=True)
+@step_result
 class FeatureDetection:
     """Result of :func:`detect_features`."""
 
     keypoints: Points2D
     descriptors: np.ndarray
-    warnings: tuple[str, ...]
+    warnings: Warnings
     keypoints_image1: int = metric("keypoints found in image 1")
     keypoints_image2: int = metric("keypoints found in image 2")
 
@@ -838,14 +838,14 @@ def detect_features(images: ImageSet, *, max_features: Annotated[int, Range(0, 5
 # ----------------------------------------------------------------------------------------------------
 # 2. Matching
 # ----------------------------------------------------------------------------------------------------
-@dataclass(frozen=True)
+@step_result
 class Matching:
     """Result of :func:`match_features`."""
 
     matches: np.ndarray
     x1: np.ndarray
     x2: np.ndarray
-    warnings: tuple[str, ...]
+    warnings: Warnings
     num_matches: int = metric("matches kept")
     rejected_by_ratio: int = metric("nearest neighbours rejected by the ratio test")
     rejected_by_mutual: int = metric("nearest neighbours rejected by the mutual check")
@@ -1093,7 +1093,7 @@ def estimate_fundamental_8point(x1: np.ndarray, x2: np.ndarray, *,
 # ----------------------------------------------------------------------------------------------------
 # 4. RANSAC
 # ----------------------------------------------------------------------------------------------------
-@dataclass(frozen=True)
+@step_result
 class RansacFundamental:
     """Result of :func:`estimate_fundamental_ransac`."""
 
@@ -1681,7 +1681,7 @@ def estimate_fundamental_ransac(x1: np.ndarray, x2: np.ndarray, *,
 # ----------------------------------------------------------------------------------------------------
 # 5. Epipolar lines and epipoles
 # ----------------------------------------------------------------------------------------------------
-@dataclass(frozen=True)
+@step_result
 class EpipolarDrawing:
     """Result of :func:`compute_epipolar_lines`."""
 
@@ -1888,13 +1888,13 @@ def recover_pose(candidates: np.ndarray, x1: np.ndarray, x2: np.ndarray, K1: np.
     return candidates[best].copy()
 
 
-@dataclass(frozen=True)
+@step_result
 class RefinedPose:
     """Result of :func:`refine_pose`."""
 
     R: np.ndarray
     t: np.ndarray
-    warnings: tuple[str, ...]
+    warnings: Warnings
     sampson_rms_px: float = metric("RMS Sampson distance of the inliers to E(R, t), after", unit="px")
     sampson_rms_start_px: float = metric("the same for the starting pose", unit="px")
     rotation_change_deg: float = metric("angle between the starting and the refined rotation", unit="deg")
@@ -2012,7 +2012,7 @@ def triangulate(x1: np.ndarray, x2: np.ndarray, R: np.ndarray, t: np.ndarray, K1
     return triangulate_dlt(P, np.stack([x1[mask], x2[mask]]))
 
 
-@dataclass(frozen=True)
+@step_result
 class Reconstruction:
     """Result of :func:`refine_points`."""
 

@@ -62,6 +62,7 @@ from typing import Annotated, Any, Generator, Literal
 
 import numpy as np
 
+from lab.core.step import step_result, Warnings
 from lab.core import (Cameras, Curve, ImageSet, InvalidValue, Pipeline, PointCloud, Points2D, Progress, Range,
                       StepFailed, metric)
 from lab.data.multiview import check_intrinsics, match_files, photos, rendered
@@ -217,13 +218,13 @@ def _drawn(images: ImageSet, K: np.ndarray, keypoints: Points2D, model: _Model,
 # ----------------------------------------------------------------------------------------------------
 # 1. Features and matches
 # ----------------------------------------------------------------------------------------------------
-@dataclass(frozen=True)
+@step_result
 class Features:
     """Result of :func:`detect_all_features`."""
 
     keypoints: Points2D
     descriptors: np.ndarray
-    warnings: tuple[str, ...]
+    warnings: Warnings
     keypoints_total: int = metric("keypoints in all images")
     keypoints_min: int = metric("fewest keypoints in one image")
 
@@ -268,13 +269,13 @@ def detect_all_features(images: ImageSet, *, max_features: Annotated[int, Range(
                     int(min(counts)))
 
 
-@dataclass(frozen=True)
+@step_result
 class PairMatches:
     """Result of :func:`match_all_pairs`."""
 
     matches: np.ndarray
     pair_matches: Curve
-    warnings: tuple[str, ...]
+    warnings: Warnings
     pairs: int = metric("image pairs matched")
     num_matches: int = metric("matches in all pairs")
 
@@ -339,7 +340,7 @@ def match_all_pairs(keypoints: Points2D, descriptors: np.ndarray, *, ratio: Anno
 # ----------------------------------------------------------------------------------------------------
 # 2. Geometric verification and the view graph
 # ----------------------------------------------------------------------------------------------------
-@dataclass(frozen=True)
+@step_result
 class VerifiedPairs:
     """Result of :func:`verify_pairs`."""
 
@@ -347,7 +348,7 @@ class VerifiedPairs:
     view_graph: np.ndarray
     pair_poses: np.ndarray
     pair_inliers: Curve
-    warnings: tuple[str, ...]
+    warnings: Warnings
     verified_pairs: int = metric("pairs whose matches an F explains")
     rejected_pairs: int = metric("pairs rejected (too few inliers, no F)")
     inliers: int = metric("inlier matches in all verified pairs")
@@ -433,12 +434,12 @@ def verify_pairs(images: ImageSet, keypoints: Points2D, matches: np.ndarray, K: 
 # ----------------------------------------------------------------------------------------------------
 # 3. Tracks
 # ----------------------------------------------------------------------------------------------------
-@dataclass(frozen=True)
+@step_result
 class Tracks:
     """Result of :func:`build_tracks`."""
 
     track_of: np.ndarray
-    warnings: tuple[str, ...]
+    warnings: Warnings
     tracks: int = metric("tracks (points seen in two or more images)")
     mean_track_length: float = metric("images per track, on average")
     inconsistent_tracks: int = metric("components that saw one image twice (split into consistent tracks)")
@@ -569,7 +570,7 @@ def build_tracks(keypoints: Points2D, inlier_matches: np.ndarray, descriptors: n
 # ----------------------------------------------------------------------------------------------------
 # 4. The initial pair and its pose
 # ----------------------------------------------------------------------------------------------------
-@dataclass(frozen=True)
+@step_result
 class InitialPair:
     """Result of :func:`choose_initial_pair`."""
 
@@ -621,12 +622,12 @@ def _initial(initial_pair: Any, views: int) -> tuple[int, int]:
     return int(pair[0]), int(pair[1])
 
 
-@dataclass(frozen=True)
+@step_result
 class InitialPose:
     """Result of :func:`initialize_pose`."""
 
     initial_pose: np.ndarray
-    warnings: tuple[str, ...]
+    warnings: Warnings
     inliers: int = metric("matches of the pair consistent with F")
     in_front: int = metric("inliers in front of both cameras (cheirality)")
     sampson_rms_px: float = metric("RMS Sampson distance of the inliers to E(R, t)", unit="px")
@@ -703,13 +704,13 @@ def _model_tracks(track_of: Any, model_track_of: Any, keypoints: Points2D) -> np
     return _track_of(model_track_of, keypoints, "model_track_of")
 
 
-@dataclass(frozen=True)
+@step_result
 class InitialPoints:
     """Result of :func:`triangulate_initial`."""
 
     initial_points_dlt: np.ndarray
     initial_point_tracks: np.ndarray
-    warnings: tuple[str, ...]
+    warnings: Warnings
     points: int = metric("points kept")
     dropped_behind: int = metric("points behind a camera, dropped")
     dropped_angle: int = metric("points with a too small triangulation angle, dropped")
@@ -771,7 +772,7 @@ def triangulate_initial(keypoints: Points2D, track_of: np.ndarray, K: np.ndarray
                          int(np.sum(front & ~wide)), rms, ignored)
 
 
-@dataclass(frozen=True)
+@step_result
 class InitialModel:
     """Result of :func:`refine_initial_points`."""
 
@@ -841,7 +842,7 @@ def refine_initial_points(images: ImageSet, keypoints: Points2D, track_of: np.nd
 # ----------------------------------------------------------------------------------------------------
 # 6. The incremental loop: register, triangulate, bundle adjust
 # ----------------------------------------------------------------------------------------------------
-@dataclass(frozen=True)
+@step_result
 class IncrementalModel:
     """Result of :func:`reconstruct_incrementally`."""
 
@@ -855,7 +856,7 @@ class IncrementalModel:
     points3d: PointCloud
     observations: Points2D
     registration_errors: Curve
-    warnings: tuple[str, ...]
+    warnings: Warnings
     registered_images: int = metric("images registered (initial pair included)")
     points_total: int = metric("3D points")
     mean_track_length: float = metric("observations per point, on average")
@@ -1444,7 +1445,7 @@ def reconstruct_incrementally(images: ImageSet, keypoints: Points2D, track_of: n
 # ----------------------------------------------------------------------------------------------------
 # 7. Filtering
 # ----------------------------------------------------------------------------------------------------
-@dataclass(frozen=True)
+@step_result
 class FilteredModel:
     """Result of :func:`filter_points`."""
 
@@ -1518,7 +1519,7 @@ def filter_points(images: ImageSet, keypoints: Points2D, track_of: np.ndarray, K
 # ----------------------------------------------------------------------------------------------------
 # 8. Final bundle adjustment
 # ----------------------------------------------------------------------------------------------------
-@dataclass(frozen=True)
+@step_result
 class AdjustedModel:
     """Result of :func:`bundle_adjust_all`."""
 

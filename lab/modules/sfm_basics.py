@@ -41,11 +41,11 @@ in scipy".
 
 from __future__ import annotations
 
-from dataclasses import dataclass
 from typing import Annotated, Any, Literal
 
 import numpy as np
 
+from lab.core.step import step_result
 from lab.core import (Cameras, Curve, InvalidControl, InvalidValue, Loaded, Pipeline, PointCloud, Points2D, Range,
                       metric)
 from lab.data.scenes.cameras import intrinsics, orbit_cameras
@@ -241,7 +241,7 @@ def estimate_poses_linear(points3d: np.ndarray, observations: Points2D,
     return np.array(poses)
 
 
-@dataclass(frozen=True)
+@step_result
 class RefinedPoses:
     """:func:`refine_poses`' result: ``poses`` ``(V, 3, 4)``, the ``cameras`` drawn, and the stage's errors."""
 
@@ -345,7 +345,7 @@ def triangulate_points_linear(observations: Points2D, poses: np.ndarray,
     return triangulate_dlt(projection_matrix(K, P[:, :, :3], P[:, :, 3]), x, mask)
 
 
-@dataclass(frozen=True)
+@step_result
 class RefinedPoints:
     """:func:`refine_points_nonlinear`' result: ``points`` ``(N, 3)``, the ``cloud`` drawn, the stage's errors."""
 
@@ -423,7 +423,7 @@ def jacobian_sparsity(camera_indices: np.ndarray, point_indices: np.ndarray, num
     return pattern.toarray().astype(bool)
 
 
-@dataclass(frozen=True)
+@step_result
 class BundleAdjusted:
     """:func:`bundle_adjust_scene`' result: poses and points, drawn cameras and cloud, the cost per iteration."""
 

@@ -50,12 +50,12 @@ their oracle.
 from __future__ import annotations
 
 import os
-from dataclasses import dataclass
 from typing import Annotated, Any, Literal
 
 import numba
 import numpy as np
 
+from lab.core.step import step_result, Warnings
 from lab.core import Cameras, Curve, Image, InvalidControl, InvalidValue, Pipeline, PointCloud, Range, metric
 from lab.data.stereo import folder, motorcycle, synthetic
 from lab.geometry.camera import as_intrinsics
@@ -1282,7 +1282,7 @@ def colorize_disparity(disparity: np.ndarray, *, max_disparity: float | None = N
     return Image(rgb, name=name)
 
 
-@dataclass(frozen=True)
+@step_result
 class FilteredDisparity:
     """Result of :func:`filter_disparity`."""
 
@@ -1400,7 +1400,7 @@ def row_misalignment(left: Image, right: Image, *, max_features: int = 3000) -> 
     return float(np.abs(probes @ coefficients).max()), len(matches)
 
 
-@dataclass(frozen=True)
+@step_result
 class RectifiedPair:
     """Result of :func:`rectify_pair`."""
 
@@ -1409,7 +1409,7 @@ class RectifiedPair:
     K: np.ndarray
     baseline: float
     disparity_offset: float
-    warnings: tuple[str, ...]
+    warnings: Warnings
     focal_px: float = metric("focal length of the rectified cameras", unit="px")
     baseline_m: float = metric("distance between the camera centres", unit="m")
     left_rotation_deg: float = metric("rotation of the left camera by rectification", unit="deg")
@@ -1519,7 +1519,7 @@ def depth_from_disparity(disparity: np.ndarray, K: np.ndarray, baseline: float, 
     return depth, np.where(valid, depth * depth * float(disparity_std) / fB, 0.0)
 
 
-@dataclass(frozen=True)
+@step_result
 class Reconstruction:
     """Result of :func:`reconstruct_points`."""
 

@@ -57,6 +57,7 @@ from typing import Annotated, Any, Generator, Literal
 
 import numpy as np
 
+from lab.core.step import step_result
 from lab.core import (Image, InvalidControl, InvalidValue, Mesh, Pipeline, Points2D, Progress, Range, Segments2D,
                       metric)
 from lab.data.textures import brick, grass, gravel, image_file, procedural
@@ -304,7 +305,7 @@ def _colour_basis(pixels: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return mean, vt.T
 
 
-@dataclass(frozen=True)
+@step_result
 class ParametricResult:
     """Result of :func:`synthesize_parametric`."""
 
@@ -432,7 +433,7 @@ def window_distances(sample: Image, query_window: np.ndarray, query_mask: np.nda
     return distances / weights.sum() if normalize else distances
 
 
-@dataclass(frozen=True)
+@step_result
 class QueryWindow:
     """Result of :func:`pick_query_window`."""
 
@@ -474,7 +475,7 @@ def candidates_within(distances: np.ndarray, epsilon: float) -> np.ndarray:
     return np.flatnonzero(flat <= flat.min() * (1.0 + epsilon))
 
 
-@dataclass(frozen=True)
+@step_result
 class WindowMatch:
     """Result of :func:`match_window`."""
 
@@ -872,7 +873,7 @@ def efros_leung_pixel_matches(sample: Image, texture: Image, trace: EfrosLeungTr
     return PixelMatches(_from_hwc(window / 255.0, levels.shape[2]), known, distances, candidates, chosen, order)
 
 
-@dataclass(frozen=True)
+@step_result
 class EfrosLeungResult:
     """Result of :func:`synthesize_efros_leung`."""
 
@@ -963,7 +964,7 @@ def path_cost(errors: np.ndarray, path: np.ndarray) -> float:
     return float(e[np.arange(len(path)), np.asarray(path)].sum())
 
 
-@dataclass(frozen=True)
+@step_result
 class OverlapPair:
     """Result of :func:`pick_overlap`."""
 
@@ -1011,7 +1012,7 @@ def min_error_cut(overlap_error: np.ndarray) -> Annotated[np.ndarray, "cut_path"
     return min_error_boundary_cut(overlap_error)
 
 
-@dataclass(frozen=True)
+@step_result
 class JoinedBlocks:
     """Result of :func:`join_blocks`."""
 
@@ -1217,7 +1218,7 @@ def cut_segments(layout: QuiltLayout, size: tuple[int, int], *, image: str = "qu
     return Segments2D(starts_a[inside], ends_a[inside], colors=colours, image=image)
 
 
-@dataclass(frozen=True)
+@step_result
 class QuiltResult:
     """Result of :func:`quilt`."""
 
@@ -1277,7 +1278,7 @@ def correspondence_map(pixels: np.ndarray, *, sigma: float = 1.5) -> np.ndarray:
     return cv2.GaussianBlur(luminance(pixels).astype(np.float32), (0, 0), sigma).astype(np.float64)
 
 
-@dataclass(frozen=True)
+@step_result
 class TransferResult:
     """Result of :func:`transfer_texture`."""
 
@@ -1402,7 +1403,7 @@ def sample_texture(texture: np.ndarray, uv: np.ndarray, *, repeats: float = 1.0)
     return np.clip(rgb, 0.0, 1.0)
 
 
-@dataclass(frozen=True)
+@step_result
 class TexturedMesh:
     """Result of :func:`wrap_on_mesh`."""
 

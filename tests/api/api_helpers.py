@@ -15,6 +15,7 @@ import numpy as np
 from fastapi.testclient import TestClient
 from toy_pipeline import TOY, add_noise, evaluate_means, gradients, mean_intensity
 
+from lab.core.step import step_result
 from lab.api import create_app
 from lab.core import Pipeline, PointCloud, Progress, Range, SessionStore
 

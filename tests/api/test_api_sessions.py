@@ -2,12 +2,12 @@
 
 from __future__ import annotations
 
-from dataclasses import dataclass
 
 import pytest
 from api_helpers import assert_error, make_client, new_session, snapshot
 from toy_pipeline import add_noise, gradients
 
+from lab.core.step import step_result, Warnings
 from lab.api.sessions import viewer_link
 from lab.core import ImageSet, Loaded, Pipeline
 
@@ -17,10 +17,10 @@ def folder(*, path: str) -> Loaded:
     raise FileNotFoundError(f"no such folder: {path}")
 
 
-@dataclass(frozen=True)
+@step_result
 class Checked:
     checked: ImageSet
-    warnings: tuple[str, ...] = ()
+    warnings: Warnings = ()
 
 
 def check(images: ImageSet) -> Checked:
@@ -75,7 +75,7 @@ def test_read_session_reports_history_metrics_and_step_status(client):
     ({"module": "toy", "dataset": "middlebury"}, 404, "dataset", "not_found"),
     ({"module": "toy", "options": {"count": 99}}, 422, "options.count", "invalid_control"),
     ({"module": "toy", "options": {"count": "many"}}, 422, "options.count", "invalid_control"),
-    ({"module": "toy", "options": {"colour": "red"}}, 422, "options.colour", "invalid_value"),
+    ({"module": "toy", "options": {"colour": "red"}}, 422, "options.colour", "invalid_control"),
     ({"module": "toy", "seed": -1}, 422, "seed", "invalid_request"),
     ({"module": "toy", "seed": "abc"}, 422, "seed", "invalid_request"),
     ({"module": "toy", "options": [1, 2]}, 422, "options", "invalid_request"),

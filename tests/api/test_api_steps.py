@@ -4,7 +4,6 @@ run in the background with its progress streamed, a second run refused, and canc
 from __future__ import annotations
 
 import threading
-from dataclasses import dataclass
 from typing import Generator
 
 import numpy as np
@@ -12,10 +11,11 @@ import pytest
 from api_helpers import assert_error, make_client, new_session, parse_events, running_step, snapshot, wait_until
 from toy_pipeline import gradients
 
+from lab.core.step import step_result
 from lab.core import ImageSet, Pipeline, Progress, metric
 
 
-@dataclass(frozen=True)
+@step_result
 class Odd:
     odd: np.ndarray
     ratio: float = metric("not a number here")

@@ -19,11 +19,12 @@ def session():
 
 def test_dataset_options_are_checked(session):
     assert TOY.dataset(None).name == "gradients"
-    with pytest.raises(InvalidValue) as info:
+    with pytest.raises(InvalidControl) as info:  # options are checked as step controls are: one class
         open_session(TOY, options={"colour": 1})
-    assert info.value.field == "options.colour"
-    with pytest.raises(InvalidControl):
+    assert info.value.field == "options.colour" and "options are ['count', 'size']" in info.value.reason
+    with pytest.raises(InvalidControl) as info:
         open_session(TOY, options={"count": 99})
+    assert info.value.field == "options.count"
     with pytest.raises(UnknownName):
         open_session(TOY, "nope")
 

@@ -2,18 +2,18 @@
 
 from __future__ import annotations
 
-from dataclasses import dataclass
 from typing import Annotated, Generator, Literal
 
 import jsonschema
 import numpy as np
 import pytest
 
+from lab.core.step import step_result
 from lab.core import InvalidControl, Progress, Range, describe_step, metric
 from lab.core.values import ImageSet, Points2D
 
 
-@dataclass(frozen=True)
+@step_result
 class Found:
     corners: Points2D
     count: int = metric("corners found")

@@ -5,13 +5,13 @@ steps is plotted, Cancel works, and changes made behind the viewer's back (REST)
 from __future__ import annotations
 
 import time
-from dataclasses import dataclass
 from typing import Annotated, Generator, Literal
 
 import numpy as np
 import pytest
 import viser
 
+from lab.core.step import step_result
 from lab.core import Image, ImageSet, Loaded, Pipeline, Progress, Range, SessionStore, metric
 from lab.viewer.app import (ClientView, ModuleCatalog, add_control_widget, format_number, metrics_markdown,
                             nice_step, widget_kind, widget_value)
@@ -32,7 +32,7 @@ def view(server, store):
 
 
 # --- a pipeline with every kind of control ----------------------------------------------------------
-@dataclass(frozen=True)
+@step_result
 class Echo:
     echoed: np.ndarray
     total: float = metric("sum of the numbers", unit="px")
@@ -292,7 +292,7 @@ def test_add_control_widget_for_a_required_number(server):
     assert widget_value(control, handle) == 0.5
 
 
-@dataclass(frozen=True)
+@step_result
 class Grown:
     final: np.ndarray
     points: int = metric("points grown")
