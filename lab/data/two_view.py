@@ -28,6 +28,7 @@ import numpy as np
 from lab.core import Image, ImageSet, InvalidValue, Loaded, Points2D, Range
 from lab.core.budgets import check_dataset_pixels
 from lab.data.files import check_folder, list_images, read_images
+from lab.geometry.two_view import fundamental_from_pose
 from lab.geometry.camera import project_points
 from lab.geometry.rotations import look_at, rotvec_to_matrix, skew
 
@@ -38,17 +39,6 @@ DESCRIPTOR_SIZE = 128
 def intrinsics(fx: float, fy: float, cx: float, cy: float) -> np.ndarray:
     """``[[fx, 0, cx], [0, fy, cy], [0, 0, 1]]``."""
     return np.array([[fx, 0.0, cx], [0.0, fy, cy], [0.0, 0.0, 1.0]])
-
-
-def fundamental_from_pose(K1: np.ndarray, K2: np.ndarray, R: np.ndarray, t: np.ndarray) -> np.ndarray:
-    """The exact ``F = K2^-T [t]_x R K1^-1`` of camera 2 at ``(R, t)`` relative to camera 1, scaled to unit norm.
-
-    Reference: Hartley & Zisserman (2nd ed.), section 9.6, result 9.9 (``E = [t]_x R``) and eq. (9.2).
-    """
-    E = skew(np.asarray(t, dtype=np.float64)) @ np.asarray(R, dtype=np.float64)
-    F = np.linalg.inv(K2).T @ E @ np.linalg.inv(K1)
-    norm = np.linalg.norm(F)
-    return F / norm if norm > 0 else F
 
 
 def _line_distance(F: np.ndarray, x1: np.ndarray, x2: np.ndarray) -> np.ndarray:
