@@ -190,11 +190,13 @@ class Pipeline:
         raise UnknownName("step", f"module {self.name!r} has no step {before!r}")
 
     def plan(self, target: str | Iterable[str] | None, available: Collection[str], *,
-             stale: Collection[str] = (), dependants: bool = False) -> Plan:
+             stale: Collection[str] = (), dependants: bool = False, ran: Collection[str] | None = None) -> Plan:
         """The steps to run, in pipeline order, to bring ``target`` up to date from data flow.
 
         ``available`` are the state names present; ``stale`` the steps whose outputs are out of date
-        (they ran with other controls). With a target (a step name or several) the plan holds the
+        (they ran with other controls; the steps downstream of them are out of date too); ``ran`` the
+        steps whose outputs are present, when known (a session knows; else a step has run when all it
+        writes is present, which a second writer of the same name can fake). With a target (a step name or several) the plan holds the
         targets and, recursively, the producer of every input that is missing, stale or rewritten by
         a planned step — nothing else: ``quilt``, which reads only ``sample``, plans only itself. With
         ``target`` None ("Run all") it holds every step whose outputs are missing or stale and every
@@ -205,9 +207,9 @@ class Pipeline:
         (:meth:`producer` with ``before``); an input no step writes is the dataset's.
         """
         have = set(available)
-        stale_set = set(stale)
-        for name in stale_set:
-            self.step(name)
+        stale_set = {self.step(name).name for name in stale}
+        ran_set = {s.name for s in self.steps if s.writes and have.issuperset(s.writes)} if ran is None else set(ran)
+        stale_set |= {s.name for s in self.downstream(w for n in stale_set for w in self.step(n).writes)} & ran_set
         reasons: dict[str, PlanReason] = {}
 
         def out_of_date(spec: StepSpec) -> PlanReason | None:
@@ -245,8 +247,7 @@ class Pipeline:
                             changed = True
         if dependants:
             for spec in self.steps:
-                if spec.name not in reasons and spec.writes and have.issuperset(spec.writes) \
-                        and self._reads_rewritten(spec, reasons):
+                if spec.name not in reasons and spec.name in ran_set and self._reads_rewritten(spec, reasons):
                     reasons[spec.name] = "dependant"
         order = tuple(s.name for s in self.steps if s.name in reasons)
         return Plan(steps=order, reasons={name: reasons[name] for name in order}, target=targets)
@@ -411,7 +412,8 @@ class Session:
     def plan(self, target: str | Iterable[str] | None = None, params: StepParams | None = None, *,
              dependants: bool = False) -> Plan:
         """:meth:`Pipeline.plan` on this session's state, with the steps ``params`` makes stale."""
-        return self.pipeline.plan(target, self.state.keys(), stale=self.stale(params), dependants=dependants)
+        return self.pipeline.plan(target, self.state.keys(), stale=self.stale(params), dependants=dependants,
+                                  ran=self.ran_with.keys())
 
     def summary(self) -> dict[str, Any]:
         return {"id": self.id, "module": self.pipeline.name, "dataset": self.dataset,
