@@ -25,11 +25,12 @@ import weakref
 from collections import deque
 from dataclasses import dataclass
 from queue import Empty, SimpleQueue
-from typing import Any, Callable, TypeVar
+from collections.abc import Callable, Mapping
+from typing import Any, TypeVar
 
 from lab.api.errors import error_body, jsonable, log
 from lab.core.errors import Cancelled, InvalidControl, LabError, MissingInput, SessionBusy, TooManyRequests
-from lab.core.pipeline import RunRecord, Session
+from lab.core.pipeline import Plan, RunRecord, Session
 from lab.core.step import Progress, StepSpec
 from lab.core.store import SessionStore
 
@@ -355,40 +356,38 @@ def plan_step(session: Session, spec: StepSpec, controls: dict[str, Any] | None)
     return checked
 
 
-def plan_until(session: Session, target: StepSpec, params: dict[str, Any] | None) -> list[str]:
-    """The steps ``run-until`` will run (as :meth:`Session.run_until` picks them), all checked first.
+def plan_until(session: Session, target: StepSpec, params: Mapping[str, Any] | None) -> Plan:
+    """The plan ``run-until`` will run (:meth:`Session.plan`), every control and input checked first.
 
     ``params`` maps step names to controls; every entry is checked (field ``step.control``) before
-    anything runs, so a bad control never leaves the session half-run.
+    anything runs, so a bad control never leaves the session half-run. A step the target does not
+    need (downstream of it, or on another branch) is refused: its controls would be ignored.
     """
     pipeline = session.pipeline
     params = dict(params or {})
     order = [s.name for s in pipeline.steps]
+    upstream = pipeline.plan(target.name, available=()).steps  # every step the target can need
     for name, controls in params.items():
         if name not in order:
             raise InvalidControl(name, f"module {pipeline.name!r} has no step {name!r}; steps are {order}")
-        if order.index(name) > order.index(target.name):
-            raise InvalidControl(name, f"step {name!r} comes after {target.name!r} and would not run")
+        if name not in upstream:
+            raise InvalidControl(name, f"step {name!r} is not one {target.name!r} needs (it comes after it or on "
+                                       f"another branch of the data flow) and would not run; "
+                                       f"{target.name!r} needs {list(upstream)}")
         if controls is not None and not isinstance(controls, dict):
             raise InvalidControl(name, "controls must be a JSON object")
         try:
             pipeline.step(name).coerce_controls(controls)
         except InvalidControl as exc:
             raise InvalidControl(f"{name}.{exc.field}", exc.reason) from None
-    available = set(session.state)
-    plan: list[str] = []
-    for spec in pipeline.steps:
-        done = bool(spec.writes) and all(w in available for w in spec.writes)
-        if spec.name == target.name or not done:
-            for inp in spec.inputs:
-                if not inp.optional and inp.name not in available:
-                    raise _missing_input(session, spec, inp.name)
-            for later in pipeline.downstream(spec.writes):
-                available.difference_update(later.writes)
-            available.update(spec.writes)
-            plan.append(spec.name)
-        if spec.name == target.name:
-            break
+    plan = session.plan(target.name, params)
+    produced: set[str] = set()
+    for name in plan.steps:
+        spec = pipeline.step(name)
+        for inp in spec.inputs:
+            if not inp.optional and inp.name not in session.state and inp.name not in produced:
+                raise _missing_input(session, spec, inp.name)
+        produced.update(spec.writes)
     return plan
 
 
@@ -420,8 +419,11 @@ class RunJob:
         if self.cancel_requested.is_set():  # a cancel that arrived before the step took the lock
             self.session.cancel_event.set()
 
-    def _run_one(self, step: str, controls: dict[str, Any] | None) -> RunRecord:
+    def _start(self, step: str) -> None:
         self.current = step
+
+    def _run_one(self, step: str, controls: dict[str, Any] | None) -> RunRecord:
+        self._start(step)
         if self.cancel_requested.is_set():
             raise Cancelled(step, "cancelled by the user")
         return self.session.run(step, controls, on_progress=self._watch_cancel)
@@ -431,15 +433,12 @@ class RunJob:
         session = self.session
         try:
             if self.until:
-                records: list[RunRecord] = []
-                params = self.params or {}
-                for spec in session.pipeline.steps:  # as Session.run_until, with a cancel check between steps
-                    if spec.name == self.step or session.step_status()[spec.name] != "done":
-                        records.append(self._run_one(spec.name, params.get(spec.name)))
-                    if spec.name == self.step:
-                        break
-                self.result = {"session": session.id, "records": [r.to_json() for r in records],
-                               "steps": session.step_status(), "version": session.version}
+                plan = plan_until(session, session.pipeline.step(self.step), self.params)
+                records = session.run_plan(plan, self.params, on_start=self._start,
+                                           should_stop=self.cancel_requested.is_set, on_progress=self._watch_cancel)
+                self.result = {"session": session.id, "plan": plan.to_json(), "ran": [r.step for r in records],
+                               "records": [r.to_json() for r in records], "steps": session.step_status(),
+                               "version": session.version}
             else:
                 self.result = step_response(session, self._run_one(self.step, self.params))
             self.store.check_memory()

@@ -235,9 +235,13 @@ async def run_step(request: Request, session: SessionDep, store: StoreDep, pools
 
 
 @router.post("/{session_id}/run-until/{step}", summary="Run every step up to one", responses=_RUN_RESPONSES,
-             description="Run, in order, every step not yet done before `step`, then `step` itself. The JSON body "
-                         "maps step names to their controls (`{\"detect_corners\": {\"window\": 7}}`); all of them are "
-                         "checked before anything runs. Answers the list of run records.")
+             description="Run the plan of `step`: the steps it needs by data flow whose outputs are missing or "
+                         "stale, in pipeline order, then `step` itself (a step that reads only the dataset runs "
+                         "alone). The JSON body maps step names to their controls "
+                         "(`{\"detect_corners\": {\"window\": 7}}`); all of them are checked before anything runs, "
+                         "and a done step given other controls than it ran with is stale and runs again with what "
+                         "reads its outputs. Answers the plan (`plan`: steps and why each runs), the steps that "
+                         "`ran`, and their run records.")
 async def run_until(request: Request, session: SessionDep, store: StoreDep, pools: PoolsDep, step: StepName,
                     params: Annotated[dict[str, dict[str, Any] | None] | None,
                                       Body(description="Controls per step name.")] = None,

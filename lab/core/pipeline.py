@@ -595,12 +595,14 @@ class Session:
 
     def run_plan(self, plan: Plan, params: StepParams | None = None, *,
                  overrides: Mapping[str, Callable[..., Any]] | None = None,
-                 on_step: StepCallback | None = None, should_stop: Callable[[], bool] | None = None,
-                 on_progress: ProgressCallback | None = None, device: str | None = None) -> list[RunRecord]:
+                 on_start: Callable[[str], None] | None = None, on_step: StepCallback | None = None,
+                 should_stop: Callable[[], bool] | None = None, on_progress: ProgressCallback | None = None,
+                 device: str | None = None) -> list[RunRecord]:
         """Run the steps of ``plan`` in order, each with its controls from ``params`` (defaults else).
 
         Every step's controls are checked before the first runs. ``overrides`` replace steps by name
-        (a student's function). ``on_step`` gets each record as it is made; ``should_stop`` is asked
+        (a student's function). ``on_start`` gets each step's name before it runs, ``on_step`` its
+        record after it ran (failed steps raise instead); ``should_stop`` is asked
         between steps and ends the run early (:class:`Cancelled`). A failing step raises and the
         steps after it do not run; the records of those that ran are in :attr:`history`.
         """
@@ -611,6 +613,8 @@ class Session:
         for name in plan.steps:
             if should_stop is not None and should_stop():
                 raise Cancelled(name, "cancelled by the user before this step")
+            if on_start is not None:
+                on_start(name)
             record = self.run(name, params.get(name), override=(overrides or {}).get(name),
                               on_progress=on_progress, device=device)
             records.append(record)

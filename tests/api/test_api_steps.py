@@ -83,6 +83,19 @@ def test_run_until_runs_what_is_not_done_with_per_step_controls(client):
     assert body["steps"] == {"add_noise": "done", "mean_intensity": "done", "lift": "done"}
 
 
+def test_run_until_says_what_ran_and_reruns_a_step_given_other_controls(client):
+    sid = new_session(client)
+    first = client.post(f"/api/sessions/{sid}/run-until/lift").json()
+    assert first["ran"] == ["add_noise", "mean_intensity", "lift"]
+    assert first["plan"]["reasons"] == {"add_noise": "missing", "mean_intensity": "missing", "lift": "target"}
+    again = client.post(f"/api/sessions/{sid}/run-until/lift", json={"add_noise": {"sigma": 0.1}}).json()
+    assert again["ran"] == ["lift"]  # add_noise ran with these controls (the defaults): nothing is stale
+    changed = client.post(f"/api/sessions/{sid}/run-until/lift", json={"add_noise": {"sigma": 0.3}}).json()
+    assert changed["ran"] == ["add_noise", "mean_intensity", "lift"]
+    assert changed["plan"]["reasons"]["add_noise"] == "stale"
+    assert changed["records"][0]["params"]["sigma"] == 0.3
+
+
 # --- bad input --------------------------------------------------------------------------------------
 @pytest.mark.parametrize("controls, field, fragment", [
     ({"sigma": 3.0}, "sigma", "at most 1.0"),
