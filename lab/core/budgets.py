@@ -41,15 +41,16 @@ def megapixels(pixels: int) -> str:
 
 
 def check_image_pixels(width: int, height: int, *, field: str, what: str) -> None:
-    """Refuse (CapacityExceeded on ``field``) an image of ``width`` x ``height`` over :data:`MAX_IMAGE_PIXELS`.
+    """Refuse (CapacityExceeded on ``field``) an image of ``width`` x ``height`` over
+    :data:`MAX_IMAGE_PIXELS`.
 
     ``what`` names the image in the reason (``"'big.png'"``, ``"the upload"``).
     """
     pixels = int(width) * int(height)
     if pixels > MAX_IMAGE_PIXELS:
-        raise CapacityExceeded(field, f"{what} is {width} x {height} pixels ({megapixels(pixels)}); images may have "
-                                      f"at most {megapixels(MAX_IMAGE_PIXELS)} (lab.core.budgets.MAX_IMAGE_PIXELS): "
-                                      "shrink it before loading it")
+        raise CapacityExceeded(field, f"{what} is {width} x {height} pixels ({megapixels(pixels)}); "
+                                      f"images may have at most {megapixels(MAX_IMAGE_PIXELS)} "
+                                      "(lab.core.budgets.MAX_IMAGE_PIXELS): shrink it before loading it")
 
 
 def check_dataset_pixels(*, views: int, width: int, height: int, field: str = "num_views") -> None:
@@ -57,18 +58,21 @@ def check_dataset_pixels(*, views: int, width: int, height: int, field: str = "n
     :data:`MAX_DATASET_PIXELS` (called by generated datasets before they render anything)."""
     pixels = int(views) * int(width) * int(height)
     if pixels > MAX_DATASET_PIXELS:
-        raise CapacityExceeded(field, f"{views} views of {width} x {height} pixels make {megapixels(pixels)}; a "
-                                      f"dataset may make at most {megapixels(MAX_DATASET_PIXELS)} "
+        raise CapacityExceeded(field, f"{views} views of {width} x {height} pixels make "
+                                      f"{megapixels(pixels)}; a dataset may make at most "
+                                      f"{megapixels(MAX_DATASET_PIXELS)} "
                                       "(lab.core.budgets.MAX_DATASET_PIXELS): ask for fewer or smaller views")
 
 
 def check_upload_pixels(pixels: int, *, field: str) -> None:
-    """Refuse (CapacityExceeded on ``field``) one upload whose images total over :data:`MAX_DATASET_PIXELS`."""
+    """Refuse (CapacityExceeded on ``field``) one upload whose images total over
+    :data:`MAX_DATASET_PIXELS`."""
     if pixels > MAX_DATASET_PIXELS:
-        raise CapacityExceeded(field, f"the uploaded images total {megapixels(pixels)}; one upload may hold at most "
-                                      f"{megapixels(MAX_DATASET_PIXELS)} (lab.core.budgets.MAX_DATASET_PIXELS): "
-                                      "send fewer or smaller images per request (?append=true adds views)")
+        raise CapacityExceeded(field, f"the uploaded images total {megapixels(pixels)}; one upload may hold "
+                                      f"at most {megapixels(MAX_DATASET_PIXELS)} "
+                                      "(lab.core.budgets.MAX_DATASET_PIXELS): send fewer or smaller images "
+                                      "per request (?append=true adds views)")
 
 
-__all__ = ["MAX_IMAGE_PIXELS", "MAX_DATASET_PIXELS", "MAX_JSON_NUMBERS", "MAX_JSON_DEPTH", "megapixels",
-           "check_image_pixels", "check_dataset_pixels", "check_upload_pixels"]
+__all__ = ["MAX_DATASET_PIXELS", "MAX_IMAGE_PIXELS", "MAX_JSON_DEPTH", "MAX_JSON_NUMBERS",
+           "check_dataset_pixels", "check_image_pixels", "check_upload_pixels", "megapixels"]

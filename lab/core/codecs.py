@@ -29,7 +29,9 @@ def to_json(value: Any) -> Any:
     if isinstance(value, np.ndarray):
         if value.dtype.kind == "b":
             return value.tolist()
-        return np.where(np.isfinite(value), value, None).tolist() if value.dtype.kind == "f" else value.tolist()
+        if value.dtype.kind == "f":
+            return np.where(np.isfinite(value), value, np.array(None)).tolist()
+        return value.tolist()
     if isinstance(value, (np.floating, float)):
         return float(value) if np.isfinite(value) else None
     if isinstance(value, (np.integer,)):
@@ -49,7 +51,8 @@ def to_json(value: Any) -> Any:
 
 
 def json_numbers(value: Any) -> int:
-    """How many numbers (array entries and scalars) :func:`to_json` writes for ``value``, without building it."""
+    """How many numbers (array entries and scalars) :func:`to_json` writes for ``value``, without
+    building it."""
     if isinstance(value, np.ndarray):
         return int(value.size)
     if dataclasses.is_dataclass(value) and not isinstance(value, type):
@@ -62,14 +65,15 @@ def json_numbers(value: Any) -> int:
 
 
 def check_json_answer(value: Any, *, name: str) -> None:
-    """Refuse (InvalidValue on ``format``) a value whose JSON would hold over :data:`lab.core.budgets.MAX_JSON_NUMBERS`
-    numbers, pointing to the binary formats that carry it at its own size."""
+    """Refuse (InvalidValue on ``format``) a value whose JSON would hold over
+    :data:`lab.core.budgets.MAX_JSON_NUMBERS` numbers, pointing to the binary formats that carry it at
+    its own size."""
     count = json_numbers(value)
     if count > budgets.MAX_JSON_NUMBERS:
         binary = "format=npy or format=png" if isinstance(value, (Image, ImageSet)) else "format=npy"
         raise InvalidValue("format", f"{name!r} holds {count} numbers, too many for format=json (at most "
-                                     f"{budgets.MAX_JSON_NUMBERS}, lab.core.budgets.MAX_JSON_NUMBERS): read it as "
-                                     f"{binary}, or one part of it with ?index=N")
+                                     f"{budgets.MAX_JSON_NUMBERS}, lab.core.budgets.MAX_JSON_NUMBERS): "
+                                     f"read it as {binary}, or one part of it with ?index=N")
 
 
 _JSON_STRING = re.compile(rb'"(?:[^"\\]|\\.)*"')
@@ -77,7 +81,8 @@ _JSON_CHUNK = 2**20
 
 
 def json_depth(payload: bytes) -> int:
-    """The deepest nesting of arrays and objects in the JSON text ``payload`` (brackets inside strings ignored).
+    """The deepest nesting of arrays and objects in the JSON text ``payload`` (brackets inside strings
+    ignored).
 
     Counted without parsing (Python's ``json`` recurses once per level), in chunks of a MiB.
     """
@@ -85,7 +90,8 @@ def json_depth(payload: bytes) -> int:
     depth, deepest = 0, 0
     for start in range(0, len(codes), _JSON_CHUNK):
         chunk = codes[start:start + _JSON_CHUNK]
-        steps = (chunk == ord("[")).astype(np.int64) + (chunk == ord("{")) - (chunk == ord("]")) - (chunk == ord("}"))
+        opened = (chunk == ord("[")).astype(np.int64) + (chunk == ord("{"))
+        steps = opened - (chunk == ord("]")) - (chunk == ord("}"))
         if len(steps):
             levels = np.cumsum(steps) + depth
             deepest = max(deepest, int(levels.max()))
@@ -132,7 +138,8 @@ def decode_json(data: Any, annotation: Any, *, name: str) -> Any:
             known = {f.name for f in dataclasses.fields(cls)}
             unknown = set(data) - known
             if unknown:
-                raise InvalidValue(name, f"{cls.__name__} has no field(s) {sorted(unknown)}; fields are {sorted(known)}")
+                raise InvalidValue(name, f"{cls.__name__} has no field(s) {sorted(unknown)}; "
+                                         f"fields are {sorted(known)}")
             kwargs = {}
             for key, item in data.items():
                 sub = _base_type(hints.get(key))
@@ -180,7 +187,8 @@ def primary_array(value: Any, *, name: str, index: int | None = None) -> np.ndar
         if index is None:
             shapes = {im.pixels.shape for im in value.images}
             if len(shapes) != 1:
-                raise InvalidValue("index", f"{name!r} holds images of different sizes: ask for one with ?index=")
+                raise InvalidValue("index", f"{name!r} holds images of different sizes: "
+                                            "ask for one with ?index=")
             return np.stack([im.pixels for im in value.images])
         return value[_index(value, index, name)].pixels
     if isinstance(value, Cameras):
@@ -193,7 +201,8 @@ def primary_array(value: Any, *, name: str, index: int | None = None) -> np.ndar
 
 def _index(images: ImageSet, index: int, name: str) -> int:
     if not 0 <= index < len(images):
-        raise InvalidValue("index", f"{name!r} has {len(images)} views; index must be in [0, {len(images) - 1}]")
+        raise InvalidValue("index", f"{name!r} has {len(images)} views; "
+                                    f"index must be in [0, {len(images) - 1}]")
     return index
 
 
@@ -209,7 +218,8 @@ def from_npy(payload: bytes, *, name: str) -> np.ndarray:
     except Exception as exc:  # numpy raises ValueError, OSError, EOFError... on bad files
         raise InvalidValue(name, f"not a valid .npy file ({type(exc).__name__}: {exc})") from None
     if not isinstance(array, np.ndarray) or array.dtype.kind not in "biuf":
-        raise InvalidValue(name, f"a .npy upload must hold a numeric array, got dtype {getattr(array, 'dtype', '?')}")
+        raise InvalidValue(name, "a .npy upload must hold a numeric array, "
+                                 f"got dtype {getattr(array, 'dtype', '?')}")
     return array
 
 
@@ -386,7 +396,8 @@ def _radiance_size(head: bytes) -> tuple[int, int] | None:
 
 
 def check_image_header(stream: BinaryIO, *, field: str, what: str) -> tuple[int, int]:
-    """The size of the image in ``stream`` after checking it against :data:`lab.core.budgets.MAX_IMAGE_PIXELS`.
+    """The size of the image in ``stream`` after checking it against
+    :data:`lab.core.budgets.MAX_IMAGE_PIXELS`.
 
     Raises InvalidValue when the header gives no size (not an image file the lab reads),
     CapacityExceeded when the image is too large; both before any pixel is decoded.
@@ -399,7 +410,8 @@ def check_image_header(stream: BinaryIO, *, field: str, what: str) -> tuple[int,
 
 
 def decode_image(payload: bytes, *, name: str, what: str = "the upload") -> Image:
-    """An uploaded image file as an :class:`Image` (RGB float32 in [0, 1]), refused from its header when too large.
+    """An uploaded image file as an :class:`Image` (RGB float32 in [0, 1]), refused from its header
+    when too large.
 
     ``what`` names the file in errors (``"'left.png'"``); the field at fault is ``name``.
     """
@@ -435,17 +447,24 @@ def to_ply(value: Any, *, name: str) -> bytes:
     """Binary PLY of a point cloud (with colours) or a mesh, through trimesh."""
     import trimesh
 
+    geometry: trimesh.PointCloud | trimesh.Trimesh
     if isinstance(value, PointCloud):
-        colors = None if value.colors is None else np.clip(value.colors * 255 + 0.5, 0, 255).astype(np.uint8)
+        colors = None if value.colors is None else _colour_bytes(value.colors)
         geometry = trimesh.PointCloud(value.xyz, colors=colors)
     elif isinstance(value, Mesh):
-        colors = None if value.vertex_colors is None else np.clip(value.vertex_colors * 255 + 0.5, 0, 255).astype(np.uint8)
+        colors = None if value.vertex_colors is None else _colour_bytes(value.vertex_colors)
         geometry = trimesh.Trimesh(value.vertices, value.faces, vertex_colors=colors, process=False)
     elif isinstance(value, np.ndarray) and value.ndim == 2 and value.shape[1] == 3:
         geometry = trimesh.PointCloud(value)
     else:
-        raise InvalidValue("format", f"{name!r} ({type(value).__name__}) is not a point cloud or mesh; use format=json")
-    return geometry.export(file_type="ply")
+        raise InvalidValue("format", f"{name!r} ({type(value).__name__}) is not a point cloud or mesh; "
+                                     "use format=json")
+    return typing.cast(bytes, geometry.export(file_type="ply"))  # a binary PLY: trimesh gives bytes
+
+
+def _colour_bytes(colours: np.ndarray) -> np.ndarray:
+    """Colours in [0, 1] as PLY's uint8 (rounded, clipped)."""
+    return np.clip(colours * 255 + 0.5, 0, 255).astype(np.uint8)
 
 
 def from_ply(payload: bytes, *, name: str) -> PointCloud | Mesh:
@@ -459,9 +478,10 @@ def from_ply(payload: bytes, *, name: str) -> PointCloud | Mesh:
         colors = getattr(loaded.visual, "vertex_colors", None)
         return Mesh(loaded.vertices, loaded.faces,
                     None if colors is None else np.asarray(colors)[:, :3] / 255.0)
-    colors = getattr(loaded, "colors", None)
+    cloud = typing.cast("trimesh.PointCloud", loaded)  # a PLY without faces loads as a point cloud
+    colors = getattr(cloud, "colors", None)
     colors = None if colors is None or len(colors) == 0 else np.asarray(colors)[:, :3] / 255.0
-    return PointCloud(np.asarray(loaded.vertices), colors)
+    return PointCloud(np.asarray(cloud.vertices), colors)
 
 
 MEDIA_TYPES = {"json": "application/json", "npy": "application/octet-stream", "png": "image/png",
@@ -507,5 +527,6 @@ def decode_upload(payload: bytes, *, filename: str, content_type: str, annotatio
     try:
         data = json.loads(payload.decode("utf-8"))
     except (UnicodeDecodeError, json.JSONDecodeError) as exc:
-        raise InvalidValue(name, f"expected JSON, NPY{' or an image file' if cls in (Image, ImageSet) else ''}: {exc}") from None
+        images = " or an image file" if cls in (Image, ImageSet) else ""
+        raise InvalidValue(name, f"expected JSON, NPY{images}: {exc}") from None
     return decode_json(data, cls, name=name)

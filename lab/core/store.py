@@ -16,7 +16,8 @@ import threading
 import time
 from collections import Counter, OrderedDict
 from pathlib import Path
-from typing import Any, Callable, Literal
+from typing import Any, Literal
+from collections.abc import Callable
 
 from lab.core.errors import CapacityExceeded, Forbidden, RetryLater, TooManyRequests, UnknownName
 from lab.core.pipeline import DatasetSpec, Pipeline, Session, open_session
@@ -38,7 +39,8 @@ def _mib(nbytes: int) -> str:
 
 
 def link_outside(path: str | os.PathLike, root: Path) -> str | None:
-    """The first entry of folder ``path`` (or ``path`` itself) that is a symbolic link resolving outside ``root``.
+    """The first entry of folder ``path`` (or ``path`` itself) that is a symbolic link resolving
+    outside ``root``.
 
     Loaders read a folder's own files, so its entries are what is checked, one by one; None when
     every entry stays inside ``root`` (a resolved folder).
@@ -75,8 +77,9 @@ class SessionStore:
     the viewer and the REST API alike.
     """
 
-    def __init__(self, *, max_sessions: int = 64, max_sessions_per_client: int = 16, idle_seconds: float = 3600.0,
-                 max_bytes: int = 4 * 1024**3, data_root: str | os.PathLike | None = None) -> None:
+    def __init__(self, *, max_sessions: int = 64, max_sessions_per_client: int = 16,
+                 idle_seconds: float = 3600.0, max_bytes: int = 4 * 1024**3,
+                 data_root: str | os.PathLike | None = None) -> None:
         if min(max_sessions, max_sessions_per_client, max_bytes) < 1 or idle_seconds <= 0:
             raise ValueError("the store's caps and idle time must be positive")
         self.max_sessions = max_sessions
@@ -117,8 +120,9 @@ class SessionStore:
                                     f"({self.data_root}); put the data there or ask whoever runs the server")
         escaping = link_outside(resolved, self.data_root)
         if escaping is not None:
-            raise Forbidden("path", f"{escaping!r} in {str(path)!r} is a symbolic link to outside the folder this "
-                                    f"server reads data from ({self.data_root}); copy the file there instead")
+            raise Forbidden("path", f"{escaping!r} in {str(path)!r} is a symbolic link to outside the "
+                                    f"folder this server reads data from ({self.data_root}); copy the file "
+                                    "there instead")
 
     def create(self, pipeline: Pipeline, dataset: str | None = None, options: dict[str, Any] | None = None,
                *, seed: int = 0, client: str | None = None) -> Session:
@@ -207,25 +211,28 @@ class SessionStore:
             held = sum(1 for c in self._clients.values() if c == client) + self._loading[client]
             if held >= self.max_sessions_per_client:
                 wait, when = self._retry_after_locked(client)
-                raise TooManyRequests("sessions", f"{client} holds {held} live sessions, the most one client may "
-                                                  f"(limit {self.max_sessions_per_client}); delete one you no longer "
-                                                  f"need (DELETE /api/sessions/{{id}}) or retry later{when}",
+                raise TooManyRequests("sessions", f"{client} holds {held} live sessions, the most one "
+                                                  f"client may (limit {self.max_sessions_per_client}); "
+                                                  "delete one you no longer need "
+                                                  f"(DELETE /api/sessions/{{id}}) or retry later{when}",
                                       retry_after=wait)
         held = len(self._sessions) + sum(self._loading.values())
         if held >= self.max_sessions:
             wait, when = self._retry_after_locked(None)
-            raise RetryLater("sessions", f"the server holds {held} live sessions (limit {self.max_sessions}) and "
-                                         f"evicts none in use; retry later{when}", retry_after=wait)
+            raise RetryLater("sessions", f"the server holds {held} live sessions "
+                                         f"(limit {self.max_sessions}) and evicts none in use; "
+                                         f"retry later{when}", retry_after=wait)
         total = self._total_bytes()
         if total + nbytes > self.max_bytes:
             wait, when = self._retry_after_locked(None)
-            raise RetryLater("memory", f"the live sessions hold {_mib(total)}; with this one ({_mib(nbytes)}) "
-                                       f"that is over the {_mib(self.max_bytes)} allowed, and none in use is "
-                                       f"evicted; retry later{when}",
+            raise RetryLater("memory", f"the live sessions hold {_mib(total)}; with this one "
+                                       f"({_mib(nbytes)}) that is over the {_mib(self.max_bytes)} allowed, "
+                                       f"and none in use is evicted; retry later{when}",
                              retry_after=wait)
 
     def _retry_after_locked(self, client: str | None) -> tuple[float, str]:
-        """``(seconds to advise, words on when room comes)``: the soonest idle expiry, at most MAX_RETRY_AFTER."""
+        """``(seconds to advise, words on when room comes)``: the soonest idle expiry, at most
+        MAX_RETRY_AFTER."""
         now = time.time()
         idle = [s.last_used + self.idle_seconds - now for sid, s in self._sessions.items()
                 if s.running is None and (client is None or self._clients.get(sid) == client)]

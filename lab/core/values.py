@@ -12,7 +12,7 @@ Conventions (DESIGN.md section 3): points are float64 ``(N, 2)`` / ``(N, 3)``; i
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field, fields
+from dataclasses import dataclass, field, fields, is_dataclass
 from typing import Literal
 
 import numpy as np
@@ -23,10 +23,12 @@ from lab.core.errors import InvalidValue
 def _as_array(value: object, *, name: str, dtype: type, shape: tuple[int | None, ...]) -> np.ndarray:
     """Coerce ``value`` to an array of ``dtype`` whose shape matches ``shape`` (None = any)."""
     try:
-        array = np.asarray(value, dtype=dtype)
+        array: np.ndarray = np.asarray(value, dtype=dtype)
     except (TypeError, ValueError) as exc:
         raise InvalidValue(name, f"cannot be read as a {np.dtype(dtype).name} array ({exc})") from None
-    if array.ndim != len(shape) or any(s is not None and s != a for s, a in zip(shape, array.shape)):
+    # zip is strict: the number of dimensions is checked first, so lengths are equal when it runs
+    if array.ndim != len(shape) or any(s is not None and s != a
+                                       for s, a in zip(shape, array.shape, strict=True)):
         want = "(" + ", ".join("N" if s is None else str(s) for s in shape) + ")"
         raise InvalidValue(name, f"expected shape {want}, got {tuple(array.shape)}")
     if array.dtype.kind == "f" and not np.all(np.isfinite(array)):
@@ -34,8 +36,8 @@ def _as_array(value: object, *, name: str, dtype: type, shape: tuple[int | None,
     return array
 
 
-def _optional(value: object, **kwargs) -> np.ndarray | None:
-    return None if value is None else _as_array(value, **kwargs)
+def _optional(value: object, *, name: str, dtype: type, shape: tuple[int | None, ...]) -> np.ndarray | None:
+    return None if value is None else _as_array(value, name=name, dtype=dtype, shape=shape)
 
 
 @dataclass(frozen=True, eq=False)
@@ -117,7 +119,8 @@ class Points2D:
         object.__setattr__(self, "xy", xy)
         object.__setattr__(self, "view", _optional(self.view, name="view", dtype=np.int64, shape=(n,)))
         object.__setattr__(self, "ids", _optional(self.ids, name="ids", dtype=np.int64, shape=(n,)))
-        object.__setattr__(self, "colors", _optional(self.colors, name="colors", dtype=np.float64, shape=(n, 3)))
+        object.__setattr__(self, "colors",
+                           _optional(self.colors, name="colors", dtype=np.float64, shape=(n, 3)))
 
     def __len__(self) -> int:
         return len(self.xy)
@@ -185,7 +188,8 @@ class Cameras:
             dist = np.broadcast_to(np.asarray(dist, dtype=np.float64), (v, len(dist))).copy()
         object.__setattr__(self, "dist", _optional(dist, name="dist", dtype=np.float64, shape=(v, 5)))
         object.__setattr__(self, "views", _optional(self.views, name="views", dtype=np.int64, shape=(v,)))
-        object.__setattr__(self, "colors", _optional(self.colors, name="colors", dtype=np.float64, shape=(v, 3)))
+        object.__setattr__(self, "colors",
+                           _optional(self.colors, name="colors", dtype=np.float64, shape=(v, 3)))
         if int(self.width) < 1 or int(self.height) < 1:
             raise InvalidValue("width", "image size must be positive")
         object.__setattr__(self, "width", int(self.width))
@@ -216,7 +220,8 @@ class Segments2D:
         object.__setattr__(self, "start", start)
         object.__setattr__(self, "end", _as_array(self.end, name="end", dtype=np.float64, shape=(n, 2)))
         object.__setattr__(self, "view", _optional(self.view, name="view", dtype=np.int64, shape=(n,)))
-        object.__setattr__(self, "colors", _optional(self.colors, name="colors", dtype=np.float64, shape=(n, 3)))
+        object.__setattr__(self, "colors",
+                           _optional(self.colors, name="colors", dtype=np.float64, shape=(n, 3)))
 
     def __len__(self) -> int:
         return len(self.start)
@@ -235,7 +240,8 @@ class Segments3D:
         n = len(start)
         object.__setattr__(self, "start", start)
         object.__setattr__(self, "end", _as_array(self.end, name="end", dtype=np.float64, shape=(n, 3)))
-        object.__setattr__(self, "colors", _optional(self.colors, name="colors", dtype=np.float64, shape=(n, 3)))
+        object.__setattr__(self, "colors",
+                           _optional(self.colors, name="colors", dtype=np.float64, shape=(n, 3)))
 
     def __len__(self) -> int:
         return len(self.start)
@@ -262,7 +268,8 @@ class Mesh:
 
 @dataclass(frozen=True, eq=False)
 class GaussianSplats:
-    """3D Gaussians: ``centers`` ``(N, 3)``, ``covariances`` ``(N, 3, 3)``, ``rgbs`` ``(N, 3)``, ``opacities`` ``(N, 1)``."""
+    """3D Gaussians: ``centers`` ``(N, 3)``, ``covariances`` ``(N, 3, 3)``, ``rgbs`` ``(N, 3)``,
+    ``opacities`` ``(N, 1)``."""
 
     centers: np.ndarray
     covariances: np.ndarray
@@ -326,10 +333,10 @@ def value_nbytes(value: object) -> int:
         return sum(value_nbytes(v) for v in value)
     if isinstance(value, dict):
         return sum(value_nbytes(v) for v in value.values())
-    if hasattr(value, "__dataclass_fields__"):
+    if is_dataclass(value):
         return sum(value_nbytes(getattr(value, f.name)) for f in fields(value))
     return 64
 
 
-__all__ = ["Image", "ImageSet", "Points2D", "PointCloud", "Cameras", "Segments2D", "Segments3D",
-           "Mesh", "GaussianSplats", "Curve", "VALUE_TYPES", "value_nbytes", "field"]
+__all__ = ["VALUE_TYPES", "Cameras", "Curve", "GaussianSplats", "Image", "ImageSet", "Mesh", "PointCloud",
+           "Points2D", "Segments2D", "Segments3D", "field", "value_nbytes"]
