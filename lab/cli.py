@@ -4,12 +4,14 @@
     vision-lab modules [--json]
     vision-lab run MODULE [--dataset NAME|PATH] [--option KEY=VALUE]... [--set STEP.CONTROL=VALUE]...
                           [--until STEP] [--seed N] [--json]
-    vision-lab export MODULE --what VALUE --format json|npy|png|ply|opencv-yaml --out PATH [run options]
+    vision-lab export MODULE --what VALUE --format json|npy|png|ply --out PATH [run options]
+    vision-lab export MODULE --format FORMAT --out PATH [run options]   (a module's own format:
+                          opencv-yaml of calibration, colmap and transforms-json of sfm; see 'modules')
 
-The CLI is one more front end on :mod:`lab.core` (DESIGN.md section 4): it opens a session with
-:func:`lab.open_session`'s dataset rules, runs steps with :meth:`lab.core.Session.run` (controls
-from ``--set``, checked by the step's own schema before anything runs) and writes values with
-:mod:`lab.data.exports`. A problem with what the user asked for (:class:`lab.core.errors.LabError`,
+The CLI is one more front end on :mod:`lab.core` (docs/design.md): it opens a session with
+:func:`lab.open_session`'s dataset rules, runs the core's plan (:meth:`lab.core.Session.plan`,
+:meth:`lab.core.Session.run_plan`; controls from ``--set``, checked by the step's own schema before
+anything runs) and writes values with :mod:`lab.data.exports` or the pipeline's own exports. A problem with what the user asked for (:class:`lab.core.errors.LabError`,
 a bad ``--set``, an unknown name, a missing folder, a step that fails on this input) prints one
 line ``error: <field>: <reason>`` on stderr and exits with code 2, never a traceback.
 """
@@ -19,21 +21,22 @@ import json
 import sys
 from collections.abc import Iterator
 from pathlib import Path
-from typing import Annotated, Any, Callable, Optional
+from typing import TYPE_CHECKING, Annotated, Any, Optional
 
 import typer
 from typer.core import TyperGroup
 
 from lab.core.errors import InvalidControl, InvalidValue, LabError
 
+if TYPE_CHECKING:  # the CLI imports the core lazily: `vision-lab --help` stays fast
+    from lab.core.pipeline import Pipeline, Plan, RunRecord, Session
+    from lab.core.step import Progress
+
 #: Exit code for every problem with what the user asked for (as click uses for usage errors).
 EXIT_USAGE = 2
 
-#: Formats of ``export``: the codecs' value formats plus OpenCV's calibration file.
-EXPORT_FORMATS = ("json", "npy", "png", "ply", "opencv-yaml", "colmap", "transforms-json")
-#: Formats that write a whole sparse reconstruction (cameras, points, tracks), made from the final
-#: state by the module's ``reconstruction_from_state`` (lab.data.reconstruction).
-RECONSTRUCTION_EXPORTS = ("colmap", "transforms-json")
+#: Formats ``export`` writes any state value in (the codecs'); a module adds its own (``Pipeline.exports``).
+EXPORT_FORMATS = ("json", "npy", "png", "ply")
 
 # Click's exception classes, whether typer vendors click (>= 0.26) or uses the package.
 _CLICK_EXCEPTION = next(c for c in typer.BadParameter.__mro__ if c.__name__ == "ClickException")
@@ -145,12 +148,9 @@ def parse_settings(pipeline, items: list[str] | None) -> dict[str, dict[str, Any
     return params
 
 
-def _steps_through(pipeline, last: str | None) -> list:
-    """The pipeline's steps from the first through ``last`` (all when None)."""
-    if last is None:
-        return list(pipeline.steps)
-    target = pipeline.step(last)
-    return list(pipeline.steps[: pipeline.steps.index(target) + 1])
+def _plan(session: "Session", targets: list[str] | None, params: dict[str, dict[str, Any]]) -> "Plan":
+    """The core's plan of ``targets`` (every step when None) on a fresh session, with ``--set`` controls."""
+    return session.plan(targets, params)
 
 
 # --- running ----------------------------------------------------------------------------------
@@ -160,33 +160,48 @@ def _stderr_is_terminal() -> bool:
 
 
 class _ProgressDisplay:
-    """A transient progress line per step on a terminal (bar for long steps); nothing otherwise."""
+    """A transient progress line per step on a terminal (bar for long steps), and each step's warnings.
 
-    def __init__(self, enabled: bool) -> None:
+    Its methods are the callbacks of :meth:`Session.run_plan`: ``start`` a step, show its
+    ``progress``, ``finished`` with its record; ``close`` ends a line a failure left open.
+    """
+
+    def __init__(self, pipeline: "Pipeline", *, enabled: bool) -> None:
+        self.pipeline = pipeline
         self.enabled = enabled
+        self._bar: Any = None
+        self._task: Any = None
 
-    @contextlib.contextmanager
-    def step(self, spec) -> Iterator[Optional[Callable[[str, Any], None]]]:
+    def start(self, step: str) -> None:
+        self.close()
         if not self.enabled:
-            yield None
             return
         from rich.console import Console
         from rich.progress import (BarColumn, MofNCompleteColumn, Progress, SpinnerColumn, TextColumn,
                                    TimeElapsedColumn)
 
-        columns = [SpinnerColumn(), TextColumn("{task.description}")]
-        if spec.is_generator:
+        columns: list[Any] = [SpinnerColumn(), TextColumn("{task.description}")]
+        if self.pipeline.step(step).is_generator:
             columns += [BarColumn(), MofNCompleteColumn(), TextColumn("{task.fields[note]}")]
         columns.append(TimeElapsedColumn())
-        console = Console(file=sys.stderr, force_terminal=True)
-        with Progress(*columns, console=console, transient=True) as progress:
-            task = progress.add_task(spec.name, total=None, note="")
+        self._bar = Progress(*columns, console=Console(file=sys.stderr, force_terminal=True), transient=True)
+        self._bar.start()
+        self._task = self._bar.add_task(step, total=None, note="")
 
-            def on_progress(step: str, snapshot: Any) -> None:
-                note = f"loss {snapshot.loss:.4g}" if snapshot.loss is not None else snapshot.message
-                progress.update(task, completed=snapshot.iteration, total=snapshot.total, note=note)
+    def progress(self, step: str, snapshot: "Progress") -> None:
+        if self._bar is not None:
+            note = f"loss {snapshot.loss:.4g}" if snapshot.loss is not None else snapshot.message
+            self._bar.update(self._task, completed=snapshot.iteration, total=snapshot.total, note=note)
 
-            yield on_progress
+    def finished(self, record: "RunRecord") -> None:
+        self.close()
+        for warning in record.warnings:
+            _print_warning(record.step, warning)
+
+    def close(self) -> None:
+        if self._bar is not None:
+            self._bar.stop()
+            self._bar = None
 
 
 def _open(module: str, dataset: str | None, options: list[str] | None, settings: list[str] | None,
@@ -211,15 +226,13 @@ def _open(module: str, dataset: str | None, options: list[str] | None, settings:
     return pipeline, session, params
 
 
-def _run_steps(session, steps: list, params: dict[str, dict[str, Any]], display: _ProgressDisplay) -> list:
-    records = []
-    for spec in steps:
-        with display.step(spec) as on_progress:
-            record = session.run(spec.name, params.get(spec.name), on_progress=on_progress)
-        for warning in record.warnings:
-            _print_warning(spec.name, warning)
-        records.append(record)
-    return records
+def _run_plan(session: "Session", plan: "Plan", params: dict[str, dict[str, Any]],
+              display: _ProgressDisplay) -> list["RunRecord"]:
+    try:
+        return session.run_plan(plan, params, on_start=display.start, on_step=display.finished,
+                                on_progress=display.progress)
+    finally:
+        display.close()
 
 
 def _print_warning(step: str, text: str) -> None:
@@ -336,6 +349,10 @@ def modules(as_json: Annotated[bool, typer.Option("--json", help="Print one JSON
                 typer.echo(f"    {dataset.name}{tags}: {dataset.summary}")
                 for option in dataset.options:
                     typer.echo(f"      --option {_describe_control(option)}")
+            if pipeline.exports:
+                typer.echo("  exports (vision-lab export MODULE --format FORMAT):")
+                for export in pipeline.exports.values():
+                    typer.echo(f"    {export.format}: {export.summary} (reads {', '.join(export.reads)})")
             typer.echo("  steps:")
             for n, step in enumerate(pipeline.steps, 1):
                 long = " (long)" if step.is_generator else ""
@@ -380,12 +397,12 @@ def run(
     """Run a module's pipeline headless and print each step's time and metrics."""
     with _user_errors():
         pipeline, session, params = _open(module, dataset, option, set_, seed)
-        steps = _steps_through(pipeline, until)
-        display = _ProgressDisplay(enabled=not as_json and _stderr_is_terminal())
+        plan = _plan(session, None if until is None else [until], params)
+        display = _ProgressDisplay(pipeline, enabled=not as_json and _stderr_is_terminal())
         # With --json stdout carries exactly one JSON object: anything a step prints goes to stderr.
         redirect = contextlib.redirect_stdout(sys.stderr) if as_json else contextlib.nullcontext()
         with redirect:
-            records = _run_steps(session, steps, params, display)
+            records = _run_plan(session, plan, params, display)
         result = summary(pipeline.name, session.dataset, records)
     if as_json:
         typer.echo(json.dumps(result))
@@ -396,10 +413,12 @@ def run(
 @app.command()
 def export(
     module: Annotated[str, typer.Argument(help="The module, e.g. calibration.")],
-    fmt: Annotated[str, typer.Option("--format", "-f", help=f"One of {', '.join(EXPORT_FORMATS)}.")],
+    fmt: Annotated[str, typer.Option("--format", "-f", help=f"One of {', '.join(EXPORT_FORMATS)}, or a format of "
+                                                            "the module's own (listed by 'vision-lab modules').")],
     out: Annotated[Path, typer.Option("--out", help="The file to write (folders are created).")],
     what: Annotated[Optional[str], typer.Option(
-        "--what", "-w", help="The state value to write, e.g. K, corners, cloud (opencv-yaml: K and dist).")] = None,
+        "--what", "-w", help="The state value to write, e.g. K, corners, cloud (a module's format writes what "
+                             "it needs: leave it out).")] = None,
     index: Annotated[Optional[int], typer.Option(help="One view of an image set (png, npy).")] = None,
     dataset: DatasetOpt = None,
     option: OptionOpt = None,
@@ -407,105 +426,52 @@ def export(
     until: UntilOpt = None,
     seed: SeedOpt = 0,
 ) -> None:
-    """Run the pipeline up to the step that produces a value, and write that value to a file."""
+    """Run the pipeline up to the steps that produce a value, and write that value to a file."""
     with _user_errors():
         pipeline = lookup_pipeline(module)
         needed = _values_to_export(pipeline, what, fmt)
-        steps = _steps_for(pipeline, needed, until)
+        targets = _export_targets(pipeline, needed, until)
         _, session, params = _open(module, dataset, option, set_, seed)
-        display = _ProgressDisplay(enabled=_stderr_is_terminal())
-        records = _run_steps(session, steps, params, display)
-        metrics = summary(pipeline.name, session.dataset, records)["metrics"]
-        if fmt == "opencv-yaml":
-            written = _write_opencv_yaml(session, metrics, out)
-        elif fmt in RECONSTRUCTION_EXPORTS:
-            from lab.data.exports import write_reconstruction
-
-            written = write_reconstruction(out, _reconstruction_maker(pipeline)(session.state), fmt)
+        display = _ProgressDisplay(pipeline, enabled=_stderr_is_terminal())
+        _run_plan(session, _plan(session, targets, params), params, display)
+        if fmt in pipeline.exports:
+            written = pipeline.export(fmt).write(session.state, session.metrics, out)
         else:
             from lab.data.exports import write_value
 
             written = write_value(out, session.get(needed[0]), fmt, name=needed[0], index=index)
-    typer.echo(f"wrote {' and '.join(needed) or 'the reconstruction'} ({fmt}) to {written}")
+    typer.echo(f"wrote {' and '.join(needed)} ({fmt}) to {written}")
 
 
-def _reconstruction_maker(pipeline) -> Callable[[dict[str, Any]], Any]:
-    """The module's ``reconstruction_from_state`` (modules that reconstruct cameras and points)."""
-    import importlib
-
-    try:
-        module = importlib.import_module(f"lab.modules.{pipeline.name}")
-    except ImportError:
-        module = None
-    maker = getattr(module, "reconstruction_from_state", None)
-    if maker is None:
-        raise InvalidValue("--format", f"module {pipeline.name!r} makes no reconstruction of cameras and points "
-                                       f"to write as colmap / transforms-json; try the sfm module")
-    return maker
-
-
-def _values_to_export(pipeline, what: str | None, fmt: str) -> list[str]:
+def _values_to_export(pipeline: "Pipeline", what: str | None, fmt: str) -> list[str]:
+    """The state names ``export`` writes: ``--what`` for a value format, what a module's format reads."""
+    if fmt in pipeline.exports:
+        reads = list(pipeline.export(fmt).reads)
+        if what is not None and what not in reads:
+            raise InvalidValue("--what", f"{fmt} writes {' and '.join(reads)} together; leave --what out")
+        return reads
     if fmt not in EXPORT_FORMATS:
-        raise InvalidValue("--format", f"unknown format {fmt!r}; formats are {list(EXPORT_FORMATS)}")
-    if fmt == "opencv-yaml":
-        if pipeline.producer("K") is None or pipeline.producer("dist") is None:
-            raise InvalidValue("--format", f"opencv-yaml writes a camera's K and dist, which module "
-                                           f"{pipeline.name!r} does not compute")
-        if what not in (None, "K", "dist"):
-            raise InvalidValue("--what", f"opencv-yaml writes K and dist together; leave --what out or "
-                                         f"give K, not {what!r}")
-        return ["K", "dist"]
-    if fmt in RECONSTRUCTION_EXPORTS:
-        if what:
-            raise InvalidValue("--what", f"{fmt} writes the whole reconstruction; leave --what out")
-        _reconstruction_maker(pipeline)
-        return []
+        raise InvalidValue("--format", f"unknown format {fmt!r}; formats are {list(EXPORT_FORMATS)} and module "
+                                       f"{pipeline.name!r}'s own {sorted(pipeline.exports)}")
     if not what:
         written = sorted({name for spec in pipeline.steps for name in spec.writes})
         raise InvalidValue("--what", f"name the value to write; the steps of {pipeline.name!r} write {written}")
     return [what]
 
 
-def _steps_for(pipeline, needed: list[str], until: str | None) -> list:
-    """The steps through the last producer of ``needed`` (or through ``until`` if later)."""
-    if not needed:  # a whole reconstruction: every step, or through ``until``
-        return list(pipeline.steps[: pipeline.steps.index(pipeline.step(until)) + 1] if until else pipeline.steps)
-    last = -1
-    for name in needed:
-        producer = pipeline.producer(name)
-        if producer is not None:
-            last = max(last, pipeline.steps.index(producer))
-    if until is not None:
-        stop = pipeline.steps.index(pipeline.step(until))
-        if stop < last:
-            producer = pipeline.steps[last]
-            raise InvalidValue("--until", f"{needed[-1]!r} is written by step {producer.name!r}, which comes "
-                                          f"after {until!r}")
-        last = stop
-    return list(pipeline.steps[: last + 1])
-
-
-def _write_opencv_yaml(session, metrics: dict[str, Any], out: Path) -> Path:
-    from lab.core.values import Cameras, ImageSet
-    from lab.data.exports import write_opencv_calibration
-
-    cameras = session.state.get("cameras")
-    images = session.state.get("images")
-    if isinstance(cameras, Cameras):
-        width, height = cameras.width, cameras.height
-    elif isinstance(images, ImageSet) and len(images):
-        height, width = images[0].pixels.shape[:2]
-    else:
-        raise InvalidValue("--format", "opencv-yaml needs the image size: the session has no images or cameras")
-    board = session.state.get("board")
-    per_view = metrics.get("per_view_rms_px")
-    return write_opencv_calibration(
-        out, session.get("K"), session.get("dist"), image_width=width, image_height=height,
-        avg_reprojection_error=metrics.get("rms_px"),
-        per_view_reprojection_errors=per_view if isinstance(per_view, list) else None,
-        board_width=getattr(board, "columns", None), board_height=getattr(board, "rows", None),
-        square_size=getattr(board, "square_size", None),
-        rotations=session.state.get("rotations"), translations=session.state.get("translations"))
+def _export_targets(pipeline: "Pipeline", needed: list[str], until: str | None) -> list[str]:
+    """The steps to plan for: the last step that writes each of ``needed`` (its final value; none for a
+    dataset value), or ``until`` when it is given and leads to them."""
+    last_writer = {n: [s.name for s in pipeline.steps if n in s.writes][-1:] for n in needed}
+    if until is None:
+        return [step for writers in last_writer.values() for step in writers]
+    pipeline.step(until)
+    upstream = set(pipeline.plan(until, available=()).steps)
+    for name, writers in last_writer.items():
+        if writers and writers[0] not in upstream:
+            raise InvalidValue("--until", f"{name!r} is written by step {writers[0]!r}, which {until!r} does "
+                                          f"not lead to (it comes after it or on another branch)")
+    return [until]
 
 
 # Lessons and grading (`vision-lab grade ...`, `vision-lab lesson ...`) live with the grader.

@@ -23,8 +23,7 @@ from typer.testing import CliRunner
 
 import lab
 import lab.cli as cli
-from lab.core.step import step_result, Warnings
-from lab.core import Cameras, ImageSet, Loaded, Pipeline, Range, UnknownName, metric
+from lab.core import Cameras, Export, ImageSet, Loaded, Pipeline, Range, UnknownName, Warnings, metric, step_result
 from lab.core.codecs import image_from_cv2
 from toy_pipeline import TOY, add_noise, gradients, lift, mean_intensity
 
@@ -83,8 +82,19 @@ def fit_camera(images: ImageSet, *, focal: Annotated[float, Range(1.0, 1e4)] = 1
 
 FILES = Pipeline.build(name="files", title="Files", summary="Reads a folder.",
                        steps=[check_images, add_noise, explode], datasets=[gradients, folder])
+def write_camera_yaml(state, metrics, out):
+    """The fake calibration as OpenCV's YAML (a module declares its own formats: Pipeline.exports)."""
+    from lab.data.exports import write_opencv_calibration
+
+    cameras, fit = state["cameras"], metrics["fit_camera"]
+    return write_opencv_calibration(out, state["K"], state["dist"], image_width=cameras.width,
+                                    image_height=cameras.height, avg_reprojection_error=fit["rms_px"],
+                                    per_view_reprojection_errors=fit["per_view_rms_px"])
+
+
 CAMERA = Pipeline.build(name="camera", title="Camera", summary="A fake calibration.",
-                        steps=[fit_camera], datasets=[gradients])
+                        steps=[fit_camera], datasets=[gradients],
+                        exports=[Export("opencv-yaml", "K and dist in OpenCV's YAML", ("K", "dist"), write_camera_yaml)])
 PIPELINES = {"toy": TOY, "files": FILES, "camera": CAMERA}
 
 
@@ -188,10 +198,13 @@ def test_option_reaches_the_dataset(tmp_path):
 def test_dataset_path_picks_the_folder_dataset(tmp_path):
     for i, size in enumerate((16, 4, 12)):
         cv2.imwrite(str(tmp_path / f"im{i}.png"), np.full((size, size), 40 * i, np.uint8))
-    summary = run_json("files", "--dataset", tmp_path, "--until", "add_noise")
+    summary = run_json("files", "--dataset", tmp_path, "--until", "check_images")
     assert summary["dataset"] == "folder"
     assert summary["metrics"]["image_count"] == 3
     assert summary["steps"][0]["warnings"] == ["im1.png is smaller than 8 px"]
+    # --until plans by data flow: add_noise reads only the images, so check_images does not run before it
+    assert [s["name"] for s in run_json("files", "--dataset", tmp_path, "--until", "add_noise")["steps"]] == \
+        ["add_noise"]
     one_file = run_json("files", "--dataset", tmp_path / "im2.png", "--until", "check_images")
     assert one_file["metrics"]["image_count"] == 1
     named = run_json("files", "--dataset", "folder", "--option", f"path={tmp_path}", "--option", "pattern=im0*",
@@ -348,7 +361,7 @@ def test_export_opencv_yaml_reads_back_with_filestorage(tmp_path):
     (["--what", "no_such_value", "--format", "json"], "value"),
     (["--format", "opencv-yaml"], "--format"),
     (["--format", "colmap"], "--format"),  # the toy module makes no reconstruction
-    (["--format", "transforms-json", "--what", "cloud"], "--what"),
+    (["--format", "transforms-json", "--what", "cloud"], "--format"),  # nor a transforms.json
     (["--what", "means", "--format", "json", "--set", "add_noise.sigma=-1"], "add_noise.sigma"),
 ])
 def test_export_errors(tmp_path, args, field):
@@ -372,6 +385,15 @@ def test_modules_lists_steps_controls_and_datasets():
                      "--set add_noise.mode=gaussian  (one of gaussian|uniform)", "3. lift (long)",
                      "folder (reads a folder or file: --dataset PATH)", "--option path=...  (str, required)"):
         assert expected in text, expected
+
+
+def test_modules_lists_a_modules_own_export_formats():
+    text = invoke("modules").stdout
+    assert "exports (vision-lab export MODULE --format FORMAT):" in text
+    assert "opencv-yaml: K and dist in OpenCV's YAML (reads K, dist)" in text
+    listed = json.loads(invoke("modules", "--json").stdout)["modules"]
+    assert listed[2]["exports"] == [{"format": "opencv-yaml", "summary": "K and dist in OpenCV's YAML",
+                                     "reads": ["K", "dist"]}]
 
 
 def test_modules_json():

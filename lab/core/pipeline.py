@@ -285,7 +285,9 @@ class Pipeline:
     def describe(self) -> dict[str, Any]:
         return {"name": self.name, "title": self.title, "summary": self.summary,
                 "steps": [s.describe() for s in self.steps],
-                "datasets": [d.describe() for d in self.datasets]}
+                "datasets": [d.describe() for d in self.datasets],
+                "exports": [{"format": e.format, "summary": e.summary, "reads": list(e.reads)}
+                            for e in self.exports.values()]}
 
 
 #: How a run ended: its outputs were written, it raised, or the user stopped it.
