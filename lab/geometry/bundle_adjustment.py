@@ -27,6 +27,7 @@ import queue
 import threading
 from collections.abc import Callable, Generator
 from dataclasses import dataclass
+from typing import Literal, overload
 
 import numpy as np
 import scipy.sparse
@@ -88,7 +89,8 @@ def _jacobian_coordinates(camera_indices: np.ndarray, point_indices: np.ndarray,
     """
     m = len(camera_indices)
     camera_cols = camera_indices[:, None] * camera_params + np.arange(camera_params)  # (M, cp)
-    intrinsic_cols = np.broadcast_to(num_cameras * camera_params + np.arange(intrinsic_params), (m, intrinsic_params))
+    intrinsic_cols = np.broadcast_to(num_cameras * camera_params + np.arange(intrinsic_params),
+                                     (m, intrinsic_params))
     point_cols = (num_cameras * camera_params + intrinsic_params + 3 * point_indices[:, None]
                   + np.arange(3))  # (M, 3)
     cols = np.concatenate([camera_cols, intrinsic_cols, point_cols], axis=1)  # (M, width)
@@ -97,8 +99,9 @@ def _jacobian_coordinates(camera_indices: np.ndarray, point_indices: np.ndarray,
     return rows, cols
 
 
-def bundle_sparsity(camera_indices: np.ndarray, point_indices: np.ndarray, num_cameras: int, num_points: int, *,
-                    camera_params: int = 6, intrinsic_params: int = 0) -> scipy.sparse.csr_matrix:
+def bundle_sparsity(camera_indices: np.ndarray, point_indices: np.ndarray, num_cameras: int,
+                    num_points: int, *, camera_params: int = 6,
+                    intrinsic_params: int = 0) -> scipy.sparse.csr_matrix:
     """Which entries of the bundle-adjustment Jacobian can be non-zero: a ``(2M, n)`` 0/1 sparse matrix.
 
     ``n = num_cameras * camera_params + intrinsic_params + 3 * num_points``. Observation ``i``
@@ -135,9 +138,10 @@ def bundle_sparsity(camera_indices: np.ndarray, point_indices: np.ndarray, num_c
     cameras = np.asarray(camera_indices)
     points = np.asarray(point_indices)
     if cameras.ndim != 1 or points.shape != cameras.shape:
-        raise InvalidValue("camera_indices", f"camera and point indices must be two (M,) arrays of the same length, "
-                                             f"got {cameras.shape} and {points.shape}")
-    if cameras.size and not (np.issubdtype(cameras.dtype, np.integer) and np.issubdtype(points.dtype, np.integer)):
+        raise InvalidValue("camera_indices", "camera and point indices must be two (M,) arrays of the same "
+                                             f"length, got {cameras.shape} and {points.shape}")
+    if cameras.size and not (np.issubdtype(cameras.dtype, np.integer)
+                             and np.issubdtype(points.dtype, np.integer)):
         raise InvalidValue("camera_indices", "indices must be integers")
     if cameras.size and (cameras.min() < 0 or cameras.max() >= num_cameras):
         raise InvalidValue("camera_indices", f"must lie in [0, {num_cameras})")
@@ -146,13 +150,27 @@ def bundle_sparsity(camera_indices: np.ndarray, point_indices: np.ndarray, num_c
     if camera_params < 0 or intrinsic_params < 0:
         raise InvalidValue("camera_params", "parameter counts must be non-negative")
     rows, cols = _jacobian_coordinates(cameras.astype(np.int64), points.astype(np.int64), int(num_cameras),
-                                       camera_params=int(camera_params), intrinsic_params=int(intrinsic_params))
-    shape = (2 * len(cameras), int(num_cameras) * int(camera_params) + int(intrinsic_params) + 3 * int(num_points))
+                                       camera_params=int(camera_params),
+                                       intrinsic_params=int(intrinsic_params))
+    shape = (2 * len(cameras),
+             int(num_cameras) * int(camera_params) + int(intrinsic_params) + 3 * int(num_points))
     ones = np.ones(rows.size, dtype=np.int8)
     return scipy.sparse.csr_matrix((ones, (rows.ravel(), cols.ravel())), shape=shape)
 
 
 # --- projection and its analytic derivatives (shared with lab.geometry.pnp) -------------------------
+@overload
+def project_with_jacobians(rotvecs: np.ndarray, translations: np.ndarray, points: np.ndarray,
+                           intrinsics: np.ndarray, skews: np.ndarray, *, cameras: np.ndarray | None = None,
+                           jacobians: Literal[True] = True) -> tuple[np.ndarray, dict[str, np.ndarray]]: ...
+
+
+@overload
+def project_with_jacobians(rotvecs: np.ndarray, translations: np.ndarray, points: np.ndarray,
+                           intrinsics: np.ndarray, skews: np.ndarray, *, cameras: np.ndarray | None = None,
+                           jacobians: Literal[False]) -> tuple[np.ndarray, None]: ...
+
+
 def project_with_jacobians(rotvecs: np.ndarray, translations: np.ndarray, points: np.ndarray,
                            intrinsics: np.ndarray, skews: np.ndarray, *, cameras: np.ndarray | None = None,
                            jacobians: bool = True) -> tuple[np.ndarray, dict[str, np.ndarray] | None]:
@@ -253,7 +271,8 @@ def _check_inputs(K, R, t, points, camera_indices, point_indices, observations):
     Ks = np.broadcast_to(K, (n, 3, 3))
     if not np.allclose(Ks[:, 2], (0.0, 0.0, 1.0)) or np.any(Ks[:, 1, 0] != 0) or np.any(Ks[:, 0, 0] == 0) \
             or np.any(Ks[:, 1, 1] == 0):
-        raise InvalidValue("K", "a camera matrix is [[fx, s, cx], [0, fy, cy], [0, 0, 1]] with non-zero focal lengths")
+        raise InvalidValue("K", "a camera matrix is [[fx, s, cx], [0, fy, cy], [0, 0, 1]] "
+                                "with non-zero focal lengths")
     X = np.asarray(points, dtype=np.float64)
     if X.ndim != 2 or X.shape[1] != 3:
         raise InvalidValue("points", f"expected (P, 3) points, got shape {X.shape}")
@@ -261,8 +280,9 @@ def _check_inputs(K, R, t, points, camera_indices, point_indices, observations):
     point_ids = np.asarray(point_indices)
     x = np.asarray(observations, dtype=np.float64)
     if cameras.ndim != 1 or point_ids.shape != cameras.shape or x.shape != (len(cameras), 2):
-        raise InvalidValue("observations", f"expected camera_indices (M,), point_indices (M,) and observations (M, 2); "
-                                           f"got {cameras.shape}, {point_ids.shape} and {x.shape}")
+        raise InvalidValue("observations", "expected camera_indices (M,), point_indices (M,) and "
+                                           f"observations (M, 2); got {cameras.shape}, {point_ids.shape} "
+                                           f"and {x.shape}")
     if len(cameras) == 0:
         raise InvalidValue("observations", "there are no observations to adjust")
     if not (np.issubdtype(cameras.dtype, np.integer) and np.issubdtype(point_ids.dtype, np.integer)):
@@ -292,15 +312,16 @@ def _scale_gauge_column(R: np.ndarray, t: np.ndarray, anchor: int, cameras_seen:
     if not candidates:
         return None
     j = max(candidates, key=lambda c: np.linalg.norm(baselines[c]))
-    if np.linalg.norm(baselines[j]) <= 1e-12 * max(1.0, np.linalg.norm(centers[anchor])):
+    if np.linalg.norm(baselines[j]) <= 1e-12 * max(1.0, float(np.linalg.norm(centers[anchor]))):
         return None
     k = int(np.argmax(np.abs(baselines[j])))
     return int(j * camera_params + 3 + k)
 
 
-def bundle_adjust(K: np.ndarray, R: np.ndarray, t: np.ndarray, points: np.ndarray, camera_indices: np.ndarray,
-                  point_indices: np.ndarray, observations: np.ndarray, *, loss: str = "huber", f_scale: float = 1.0,
-                  refine_intrinsics: bool = False, fixed_cameras: tuple[int, ...] = (0,), fix_scale: bool = True,
+def bundle_adjust(K: np.ndarray, R: np.ndarray, t: np.ndarray, points: np.ndarray,
+                  camera_indices: np.ndarray, point_indices: np.ndarray, observations: np.ndarray, *,
+                  loss: str = "huber", f_scale: float = 1.0, refine_intrinsics: bool = False,
+                  fixed_cameras: tuple[int, ...] = (0,), fix_scale: bool = True,
                   max_iterations: int = 50, jacobian: str = "analytic", guard: str = "rms",
                   sparsity: np.ndarray | scipy.sparse.spmatrix | None = None,
                   on_iteration: Callable[[int, float], None] | None = None) -> BundleResult:
@@ -319,8 +340,8 @@ def bundle_adjust(K: np.ndarray, R: np.ndarray, t: np.ndarray, points: np.ndarra
     it is held too (its largest baseline component in its own frame, see
     ``_scale_gauge_column``), which removes the scale. The solver works in the world translated
     to the first held camera's centre, where that entry scales with the world whatever the
-    rotations do, so the gauge (and the result) moves with any similarity of the input. Fixed cameras' intrinsics are still refined
-    with ``refine_intrinsics``.
+    rotations do, so the gauge (and the result) moves with any similarity of the input. Fixed
+    cameras' intrinsics are still refined with ``refine_intrinsics``.
 
     Args:
         K: ``(3, 3)`` shared by all cameras, or ``(N, 3, 3)`` one per camera (skew is kept).
@@ -366,7 +387,8 @@ def bundle_adjust(K: np.ndarray, R: np.ndarray, t: np.ndarray, points: np.ndarra
     n, p = len(R), len(X)
     fixed = sorted({int(c) for c in fixed_cameras})
     if any(c < 0 or c >= n for c in fixed):
-        raise InvalidControl("fixed_cameras", f"camera indices must lie in [0, {n}), got {tuple(fixed_cameras)}")
+        raise InvalidControl("fixed_cameras",
+                             f"camera indices must lie in [0, {n}), got {tuple(fixed_cameras)}")
     shared_K = K.ndim == 2
     Ks = np.broadcast_to(K, (n, 3, 3))
     per_camera_intrinsics = refine_intrinsics and not shared_K
@@ -466,8 +488,9 @@ def bundle_adjust(K: np.ndarray, R: np.ndarray, t: np.ndarray, points: np.ndarra
         else:
             given = scipy.sparse.csr_matrix(sparsity)
             if given.shape != (shape[0], full0.size):
-                raise InvalidValue("sparsity", f"expected shape {(shape[0], full0.size)} (2 rows per observation, "
-                                               f"a column per parameter), got {given.shape}")
+                raise InvalidValue("sparsity", f"expected shape {(shape[0], full0.size)} "
+                                               "(2 rows per observation, a column per parameter), "
+                                               f"got {given.shape}")
             pattern = (given[:, free_index] != 0).astype(np.int8)
         result = least_squares(residuals, x0, jac=jac if jacobian == "analytic" else "2-point",
                                jac_sparsity=None if jacobian == "analytic" else pattern,
@@ -495,12 +518,14 @@ def bundle_adjust(K: np.ndarray, R: np.ndarray, t: np.ndarray, points: np.ndarra
     R_out = Rotation.from_rotvec(block[:, :3]).as_matrix()
     t_out = block[:, 3:6] - R_out @ origin
     R_out[fixed], t_out[fixed] = R[fixed], t[fixed]  # bit-exact for the held cameras
-    return BundleResult(R=R_out, t=t_out, points=Xp + origin, K=K_out, rms_before=rms_before, rms_after=rms_after,
-                        cost_history=np.array(history), iterations=iteration[0], improved=True)
+    return BundleResult(R=R_out, t=t_out, points=Xp + origin, K=K_out, rms_before=rms_before,
+                        rms_after=rms_after, cost_history=np.array(history), iterations=iteration[0],
+                        improved=True)
 
 
 def bundle_adjust_progress(*args, **kwargs) -> Generator[tuple[int, float], None, BundleResult]:
-    """:func:`bundle_adjust` as a generator: yields ``(iteration, rms_px)`` live, returns the :class:`BundleResult`.
+    """:func:`bundle_adjust` as a generator: yields ``(iteration, rms_px)`` live, returns the
+    :class:`BundleResult`.
 
     For generator steps (DESIGN.md section 1: long steps yield progress snapshots): the solver runs
     in a worker thread and reports each iteration through a queue, so a step can do
@@ -541,5 +566,5 @@ def bundle_adjust_progress(*args, **kwargs) -> Generator[tuple[int, float], None
         worker.join()
 
 
-__all__ = ["LOSSES", "robust_loss", "bundle_sparsity", "project_with_jacobians", "BundleResult", "bundle_adjust",
-           "bundle_adjust_progress"]
+__all__ = ["LOSSES", "BundleResult", "bundle_adjust", "bundle_adjust_progress", "bundle_sparsity",
+           "project_with_jacobians", "robust_loss"]

@@ -46,7 +46,8 @@ def as_distortion(dist: object | None) -> np.ndarray:
     if d.size == 4:
         d = np.append(d, 0.0)
     if d.size != 5:
-        raise InvalidValue("dist", f"expected 4 or 5 distortion coefficients (k1, k2, p1, p2[, k3]), got {d.size}")
+        raise InvalidValue("dist", "expected 4 or 5 distortion coefficients (k1, k2, p1, p2[, k3]), "
+                                   f"got {d.size}")
     if not np.all(np.isfinite(d)):
         raise InvalidValue("dist", "contains NaN or infinite entries")
     return d
@@ -130,12 +131,13 @@ def distort_with_jacobians(normalized: np.ndarray,
     d = as_distortion(dist)
     x, y = xy[..., 0], xy[..., 1]
     xd, yd, dxx, cross, dyy = distort_components(x, y, d)
-    d_point = np.stack([dxx, cross, cross, dyy], axis=-1).reshape(xy.shape[:-1] + (2, 2))
+    d_point = np.stack([dxx, cross, cross, dyy], axis=-1).reshape((*xy.shape[:-1], 2, 2))
     r2 = x * x + y * y
     r4 = r2 * r2
     xy2 = 2.0 * x * y
     d_dist = np.stack([x * r2, x * r4, xy2, r2 + 2.0 * x * x, x * r4 * r2,
-                       y * r2, y * r4, r2 + 2.0 * y * y, xy2, y * r4 * r2], axis=-1).reshape(xy.shape[:-1] + (2, 5))
+                       y * r2, y * r4, r2 + 2.0 * y * y, xy2, y * r4 * r2],
+                      axis=-1).reshape((*xy.shape[:-1], 2, 5))
     return np.stack([xd, yd], axis=-1), d_point, d_dist
 
 
@@ -181,7 +183,8 @@ def undistort(distorted: np.ndarray, dist: np.ndarray | None, *, max_iterations:
 
 
 def transform_points(points: np.ndarray, R: np.ndarray, t: np.ndarray) -> np.ndarray:
-    """World to camera, ``X_c = R X_w + t``: points ``(..., N, 3)``, ``R`` ``(..., 3, 3)``, ``t`` ``(..., 3)``."""
+    """World to camera, ``X_c = R X_w + t``: points ``(..., N, 3)``, ``R`` ``(..., 3, 3)``,
+    ``t`` ``(..., 3)``."""
     X = _last(points, "points", 3)
     R = np.asarray(R, dtype=np.float64)
     t = np.asarray(t, dtype=np.float64)
@@ -202,7 +205,8 @@ def project(points_camera: np.ndarray, K: np.ndarray, dist: np.ndarray | None = 
 
 def project_points(points: np.ndarray, K: np.ndarray, dist: np.ndarray | None, R: np.ndarray,
                    t: np.ndarray) -> np.ndarray:
-    """Project world points ``(..., N, 3)`` through cameras ``R`` ``(..., 3, 3)``, ``t`` ``(..., 3)``: ``(..., N, 2)``.
+    """Project world points ``(..., N, 3)`` through cameras ``R`` ``(..., 3, 3)``, ``t`` ``(..., 3)``:
+    ``(..., N, 2)``.
 
     Corresponds to ``cv2.projectPoints`` (which takes ``rvec = matrix_to_rotvec(R)``).
     """
@@ -264,14 +268,16 @@ def optimal_new_camera_matrix(K: np.ndarray, dist: np.ndarray | None, size: tupl
     width, height = int(size[0]), int(size[1])
     new_width, new_height = (width, height) if new_size is None else (int(new_size[0]), int(new_size[1]))
     steps = 9
-    gx, gy = np.meshgrid(np.arange(steps) * (width - 1) / (steps - 1), np.arange(steps) * (height - 1) / (steps - 1))
+    gx, gy = np.meshgrid(np.arange(steps) * (width - 1) / (steps - 1),
+                         np.arange(steps) * (height - 1) / (steps - 1))
     points = undistort(pixels_to_normalized(np.stack([gx, gy], axis=-1), K), dist)  # (row, column, 2)
     outer_x0, outer_y0 = points[..., 0].min(), points[..., 1].min()
     outer_x1, outer_y1 = points[..., 0].max(), points[..., 1].max()
     inner_x0, inner_x1 = points[:, 0, 0].max(), points[:, -1, 0].min()
     inner_y0, inner_y1 = points[0, :, 1].max(), points[-1, :, 1].min()
     if inner_x1 <= inner_x0 or inner_y1 <= inner_y0:
-        raise InvalidValue("dist", "the distortion is too strong: no valid rectangle remains after undistortion")
+        raise InvalidValue("dist", "the distortion is too strong: no valid rectangle remains after "
+                                   "undistortion")
     fx0, fy0 = (new_width - 1) / (inner_x1 - inner_x0), (new_height - 1) / (inner_y1 - inner_y0)
     fx1, fy1 = (new_width - 1) / (outer_x1 - outer_x0), (new_height - 1) / (outer_y1 - outer_y0)
     cx0, cy0 = -fx0 * inner_x0, -fy0 * inner_y0
@@ -282,6 +288,7 @@ def optimal_new_camera_matrix(K: np.ndarray, dist: np.ndarray | None, size: tupl
                      [0.0, 0.0, 1.0]])
 
 
-__all__ = ["DISTORTION_NAMES", "as_distortion", "as_intrinsics", "pixels_to_normalized", "normalized_to_pixels",
-           "distort", "distort_with_jacobians", "undistort", "transform_points", "project", "project_points",
-           "undistort_pixels", "distort_components", "undistortion_map", "optimal_new_camera_matrix"]
+__all__ = ["DISTORTION_NAMES", "as_distortion", "as_intrinsics", "distort", "distort_components",
+           "distort_with_jacobians", "normalized_to_pixels", "optimal_new_camera_matrix",
+           "pixels_to_normalized", "project", "project_points", "transform_points", "undistort",
+           "undistort_pixels", "undistortion_map"]

@@ -21,11 +21,12 @@ def _points(value: object, name: str) -> np.ndarray:
 def to_homogeneous(points: np.ndarray) -> np.ndarray:
     """Append a coordinate 1: ``(..., N, d)`` -> ``(..., N, d + 1)`` (``cv2.convertPointsToHomogeneous``)."""
     p = _points(points, "points")
-    return np.concatenate([p, np.ones(p.shape[:-1] + (1,))], axis=-1)
+    return np.concatenate([p, np.ones((*p.shape[:-1], 1))], axis=-1)
 
 
 def from_homogeneous(points: np.ndarray) -> np.ndarray:
-    """Divide by the last coordinate: ``(..., N, d + 1)`` -> ``(..., N, d)`` (``cv2.convertPointsFromHomogeneous``).
+    """Divide by the last coordinate: ``(..., N, d + 1)`` -> ``(..., N, d)``
+    (``cv2.convertPointsFromHomogeneous``).
 
     Points at infinity (last coordinate 0) become infinite, as in OpenCV.
     """
@@ -51,7 +52,8 @@ def apply_homography(H: np.ndarray, points: np.ndarray) -> np.ndarray:
         return mapped[..., :d] / mapped[..., d:]
 
 
-def hartley_normalization(points: np.ndarray, mask: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+def hartley_normalization(points: np.ndarray,
+                          mask: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
     """Similarity ``T`` moving the centroid to the origin and the mean distance to ``sqrt(d)``.
 
     Args:
@@ -79,7 +81,7 @@ def hartley_normalization(points: np.ndarray, mask: np.ndarray | None = None) ->
     if np.any(mean_distance <= 1e-300):
         raise InvalidValue("points", "all points coincide: they cannot be normalized")
     scale = np.sqrt(d) / mean_distance
-    T = np.zeros(p.shape[:-2] + (d + 1, d + 1))
+    T = np.zeros((*p.shape[:-2], d + 1, d + 1))
     idx = np.arange(d)
     T[..., idx, idx] = scale[..., None]
     T[..., :d, d] = -scale[..., None] * centroid
@@ -87,4 +89,4 @@ def hartley_normalization(points: np.ndarray, mask: np.ndarray | None = None) ->
     return T, centred * scale[..., None, None]
 
 
-__all__ = ["to_homogeneous", "from_homogeneous", "apply_homography", "hartley_normalization"]
+__all__ = ["apply_homography", "from_homogeneous", "hartley_normalization", "to_homogeneous"]

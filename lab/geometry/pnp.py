@@ -39,8 +39,8 @@ def _correspondences(points3d: object, points2d: object, minimum: int = MIN_CORR
         raise InvalidValue("points2d", f"expected ({len(X)}, 2) pixels matching the {len(X)} world points, "
                                        f"got shape {x.shape}")
     if len(X) < minimum:
-        raise InvalidValue("points3d", f"the linear PnP (DLT) needs at least {minimum} 2D-3D correspondences, "
-                                       f"got {len(X)}")
+        raise InvalidValue("points3d", f"the linear PnP (DLT) needs at least {minimum} 2D-3D "
+                                       f"correspondences, got {len(X)}")
     if not np.all(np.isfinite(X)):
         raise InvalidValue("points3d", "contains NaN or infinite entries")
     if not np.all(np.isfinite(x)):
@@ -50,7 +50,8 @@ def _correspondences(points3d: object, points2d: object, minimum: int = MIN_CORR
 
 def dlt_projection_matrices(X: np.ndarray, x: np.ndarray, *,
                             hartley: bool = True) -> tuple[np.ndarray, np.ndarray]:
-    """Batched DLT of ``B`` sets: world ``(B, n, 3)``, normalized image points ``(B, n, 2)`` -> ``P`` ``(B, 3, 4)``.
+    """Batched DLT of ``B`` sets: world ``(B, n, 3)``, normalized image points ``(B, n, 2)`` -> ``P``
+    ``(B, 3, 4)``.
 
     Each ``P`` is the null vector of its ``2n x 12`` system (H&Z eq. (7.2)), solved on Hartley-normalized
     point sets unless ``hartley`` is False (lesson 04's mistake of that name uses it), the normalizations
@@ -127,18 +128,20 @@ def pnp_dlt(points3d: np.ndarray, points2d: np.ndarray, K: np.ndarray) -> tuple[
     spread = np.linalg.svd(centred, compute_uv=False)
     if spread[0] <= 0 or spread[2] <= 1e-9 * spread[0]:
         raise InvalidValue("points3d", "the world points are coplanar (or collinear): degenerate for the "
-                                       "11-dof DLT, whose system then has a multi-dimensional null space; use a "
-                                       "planar PnP (homography, cv2.SOLVEPNP_IPPE) for a planar scene")
+                                       "11-dof DLT, whose system then has a multi-dimensional null space; "
+                                       "use a planar PnP (homography, cv2.SOLVEPNP_IPPE) for a planar scene")
     R, t, s = _dlt_batch(X[None], pixels_to_normalized(x, K)[None])
     if s[0, -2] <= 1e-10 * s[0, 0]:
-        raise InvalidValue("points3d", "degenerate configuration: the DLT system has more than one null vector "
-                                       "(points and camera centre on a twisted cubic, or repeated points)")
+        raise InvalidValue("points3d", "degenerate configuration: the DLT system has more than one null "
+                                       "vector (points and camera centre on a twisted cubic, or repeated "
+                                       "points)")
     return R[0], t[0]
 
 
 def reprojection_errors(R: np.ndarray, t: np.ndarray, points3d: np.ndarray, points2d: np.ndarray,
                         K: np.ndarray) -> np.ndarray:
-    """Distance in pixels between each projected point and its observation, ``(N,)``; ``inf`` behind the camera."""
+    """Distance in pixels between each projected point and its observation, ``(N,)``; ``inf`` behind
+    the camera."""
     Xc = points3d @ np.asarray(R).T + np.asarray(t)
     with np.errstate(divide="ignore", invalid="ignore"):
         xy = Xc[:, :2] / Xc[:, 2:3]
@@ -225,7 +228,8 @@ def pnp_ransac(points3d: np.ndarray, points2d: np.ndarray, K: np.ndarray, *, thr
             drawn += 1
             if scores[k] < best_score and inlier_counts[k] >= MIN_CORRESPONDENCES:
                 best_score, best_pose, best_count = scores[k], (Rs[k], ts[k]), int(inlier_counts[k])
-                needed = ransac_iterations(best_count / n, MIN_CORRESPONDENCES, confidence, int(max_iterations))
+                needed = ransac_iterations(best_count / n, MIN_CORRESPONDENCES, confidence,
+                                           int(max_iterations))
             if drawn >= needed:
                 break
     if best_pose is None:
@@ -288,7 +292,8 @@ def refine_pnp(R: np.ndarray, t: np.ndarray, points3d: np.ndarray, points2d: np.
     R = np.asarray(R, dtype=np.float64)
     t = np.asarray(t, dtype=np.float64).reshape(-1)
     if R.shape != (3, 3) or t.shape != (3,) or not (np.all(np.isfinite(R)) and np.all(np.isfinite(t))):
-        raise InvalidValue("R", f"expected a finite (3, 3) rotation and (3,) translation, got {R.shape}, {t.shape}")
+        raise InvalidValue("R", "expected a finite (3, 3) rotation and (3,) translation, "
+                                f"got {R.shape}, {t.shape}")
     if loss not in LOSSES:
         raise InvalidControl("loss", f"unknown loss {loss!r}; losses are {list(LOSSES)}")
     if not float(f_scale) > 0:
@@ -299,12 +304,13 @@ def refine_pnp(R: np.ndarray, t: np.ndarray, points3d: np.ndarray, points2d: np.
     single = np.zeros(n, dtype=np.int64)  # every correspondence sees the one camera
 
     def residuals(params: np.ndarray) -> np.ndarray:
-        uv, _ = project_with_jacobians(params[None, :3], params[None, 3:], X, intrinsics, skews, cameras=single,
-                                       jacobians=False)
+        uv, _ = project_with_jacobians(params[None, :3], params[None, 3:], X, intrinsics, skews,
+                                       cameras=single, jacobians=False)
         return (uv - x).ravel()
 
     def jacobian(params: np.ndarray) -> np.ndarray:
-        _, J = project_with_jacobians(params[None, :3], params[None, 3:], X, intrinsics, skews, cameras=single)
+        _, J = project_with_jacobians(params[None, :3], params[None, 3:], X, intrinsics, skews,
+                                      cameras=single)
         return np.concatenate([J["rotvec"], J["t"]], axis=2).reshape(2 * n, 6)
 
     before = _rms(reprojection_errors(R, t, X, x, K))
@@ -322,4 +328,5 @@ def refine_pnp(R: np.ndarray, t: np.ndarray, points3d: np.ndarray, points2d: np.
     return R_new, t_new
 
 
-__all__ = ["MIN_CORRESPONDENCES", "pnp_dlt", "dlt_projection_matrices", "reprojection_errors", "PnPResult", "pnp_ransac", "refine_pnp"]
+__all__ = ["MIN_CORRESPONDENCES", "PnPResult", "dlt_projection_matrices", "pnp_dlt", "pnp_ransac",
+           "refine_pnp", "reprojection_errors"]

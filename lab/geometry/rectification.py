@@ -39,8 +39,8 @@ from dataclasses import dataclass
 import numpy as np
 
 from lab.core.errors import InvalidValue
-from lab.geometry.camera import (as_distortion, as_intrinsics, normalized_to_pixels, pixels_to_normalized, undistort,
-                                 undistortion_map)
+from lab.geometry.camera import (as_distortion, as_intrinsics, normalized_to_pixels, pixels_to_normalized,
+                                 undistort, undistortion_map)
 from lab.geometry.rotations import matrix_to_rotvec, nearest_rotation, rotvec_to_matrix
 
 
@@ -50,7 +50,8 @@ def _matrix(value: object, name: str, shape: tuple[int, ...]) -> np.ndarray:
     except (TypeError, ValueError):
         raise InvalidValue(name, f"cannot be read as numbers: {value!r}") from None
     if array.size != int(np.prod(shape)):
-        raise InvalidValue(name, f"expected {int(np.prod(shape))} numbers (shape {shape}), got shape {array.shape}")
+        raise InvalidValue(name, f"expected {int(np.prod(shape))} numbers (shape {shape}), "
+                                 f"got shape {array.shape}")
     array = array.reshape(shape)
     if not np.all(np.isfinite(array)):
         raise InvalidValue(name, "contains NaN or infinite entries")
@@ -91,8 +92,8 @@ class StereoCalibration:
         object.__setattr__(self, "R", nearest_rotation(R))
         T = _matrix(self.T, "T", (3,))
         if np.linalg.norm(T) == 0.0:
-            raise InvalidValue("T", "the baseline is zero: both cameras sit at the same place, so depth cannot "
-                                    "be triangulated")
+            raise InvalidValue("T", "the baseline is zero: both cameras sit at the same place, so depth "
+                                    "cannot be triangulated")
         object.__setattr__(self, "T", T)
 
     @property
@@ -128,7 +129,8 @@ class StereoCalibration:
                     and abs(T[1]) <= tolerance * B and abs(T[2]) <= tolerance * B
                     and not np.any(self.dist_left) and not np.any(self.dist_right)
                     and np.allclose(self.K_left[:2, :2], self.K_right[:2, :2], rtol=tolerance, atol=0.0)
-                    and abs(self.K_left[1, 2] - self.K_right[1, 2]) <= tolerance * max(1.0, abs(self.K_left[1, 2])))
+                    and abs(self.K_left[1, 2] - self.K_right[1, 2])
+                    <= tolerance * max(1.0, abs(self.K_left[1, 2])))
 
 
 @dataclass(frozen=True, eq=False)
@@ -170,8 +172,10 @@ class StereoRectification:
         return float(self.P_right[axis, 2] - self.P_left[axis, 2])
 
 
-def relative_pose(R_a: np.ndarray, t_a: np.ndarray, R_b: np.ndarray, t_b: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """``(R, T)`` with ``X_b = R X_a + T`` for two world-to-camera poses ``X_a = R_a X + t_a``, ``X_b = R_b X + t_b``.
+def relative_pose(R_a: np.ndarray, t_a: np.ndarray, R_b: np.ndarray,
+                  t_b: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """``(R, T)`` with ``X_b = R X_a + T`` for two world-to-camera poses ``X_a = R_a X + t_a``,
+    ``X_b = R_b X + t_b``.
 
     ``R = R_b R_a^T``, ``T = t_b - R t_a`` (what ``cv2.stereoCalibrate`` returns for a pair).
     """
@@ -181,8 +185,8 @@ def relative_pose(R_a: np.ndarray, t_a: np.ndarray, R_b: np.ndarray, t_b: np.nda
     return R, t_b - R @ t_a
 
 
-def stereo_rectify(K_left: np.ndarray, dist_left: np.ndarray | None, K_right: np.ndarray, dist_right: np.ndarray | None,
-                   size: tuple[int, int], R: np.ndarray, T: np.ndarray, *,
+def stereo_rectify(K_left: np.ndarray, dist_left: np.ndarray | None, K_right: np.ndarray,
+                   dist_right: np.ndarray | None, size: tuple[int, int], R: np.ndarray, T: np.ndarray, *,
                    zero_disparity: bool = True) -> StereoRectification:
     """Rectifying rotations and projections of a calibrated pair (Bouguet's algorithm, module docstring).
 
@@ -211,7 +215,8 @@ def stereo_rectify(K_left: np.ndarray, dist_left: np.ndarray | None, K_right: np
     norm = np.linalg.norm(cross)
     turn = np.eye(3)
     if norm > 0.0:
-        turn = rotvec_to_matrix(cross * (np.arccos(np.clip(abs(t[axis]) / np.linalg.norm(t), -1.0, 1.0)) / norm))
+        angle = np.arccos(np.clip(abs(t[axis]) / np.linalg.norm(t), -1.0, 1.0))
+        turn = rotvec_to_matrix(cross * (angle / norm))
     R_left = turn @ half.T
     R_right = turn @ half
     t_new = R_right @ T
@@ -232,8 +237,10 @@ def stereo_rectify(K_left: np.ndarray, dist_left: np.ndarray | None, K_right: np
         for c in centres:
             c[other] = shared
 
-    P_left = np.array([[focal, 0.0, centres[0][0], 0.0], [0.0, focal, centres[0][1], 0.0], [0.0, 0.0, 1.0, 0.0]])
-    P_right = np.array([[focal, 0.0, centres[1][0], 0.0], [0.0, focal, centres[1][1], 0.0], [0.0, 0.0, 1.0, 0.0]])
+    P_left = np.array([[focal, 0.0, centres[0][0], 0.0], [0.0, focal, centres[0][1], 0.0],
+                       [0.0, 0.0, 1.0, 0.0]])
+    P_right = np.array([[focal, 0.0, centres[1][0], 0.0], [0.0, focal, centres[1][1], 0.0],
+                        [0.0, 0.0, 1.0, 0.0]])
     P_right[axis, 3] = t_new[axis] * focal
     Q = np.array([[1.0, 0.0, 0.0, -centres[0][0]],
                   [0.0, 1.0, 0.0, -centres[0][1]],
@@ -250,7 +257,7 @@ def rectify_pixels(pixels: np.ndarray, K: np.ndarray, dist: np.ndarray | None, R
     Corresponds to ``cv2.undistortPoints(pixels, K, dist, R=R_rect, P=P)``.
     """
     normalized = undistort(pixels_to_normalized(pixels, K), dist)
-    rays = np.concatenate([normalized, np.ones(normalized.shape[:-1] + (1,))], axis=-1) @ np.asarray(R_rect).T
+    rays = np.concatenate([normalized, np.ones((*normalized.shape[:-1], 1))], axis=-1) @ np.asarray(R_rect).T
     with np.errstate(divide="ignore", invalid="ignore"):
         turned = rays[..., :2] / rays[..., 2:3]
     return normalized_to_pixels(turned, np.asarray(P, dtype=np.float64)[:, :3])
@@ -266,5 +273,5 @@ def rectification_map(K: np.ndarray, dist: np.ndarray | None, R_rect: np.ndarray
     return undistortion_map(K, dist, size, K_new=np.asarray(P, dtype=np.float64)[:, :3], R=R_rect)
 
 
-__all__ = ["StereoCalibration", "StereoRectification", "relative_pose", "stereo_rectify", "rectify_pixels",
-           "rectification_map"]
+__all__ = ["StereoCalibration", "StereoRectification", "rectification_map", "rectify_pixels", "relative_pose",
+           "stereo_rectify"]

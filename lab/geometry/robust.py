@@ -21,7 +21,8 @@ from lab.core.errors import InvalidValue
 
 
 def ransac_iterations(inlier_ratio: float, sample_size: int, confidence: float, max_iterations: int) -> int:
-    """Samples needed to draw one all-inlier sample with probability ``confidence``: ``log(1-p) / log(1-w^s)``.
+    """Samples needed to draw one all-inlier sample with probability ``confidence``:
+    ``log(1-p) / log(1-w^s)``.
 
     Args:
         inlier_ratio: ``w``, the fraction of inliers of the best model so far, in [0, 1].
@@ -52,7 +53,8 @@ def ransac_iterations(inlier_ratio: float, sample_size: int, confidence: float, 
 
 
 def random_samples(rng: np.random.Generator, population: int, size: int, count: int) -> np.ndarray:
-    """``count`` random samples of ``size`` distinct indices from ``range(population)``: ``(count, size)`` int.
+    """``count`` random samples of ``size`` distinct indices from ``range(population)``:
+    ``(count, size)`` int.
 
     Each row is uniform over the ``size``-subsets (in random order); rows are independent. Large
     populations draw with replacement and redraw the rare rows with a repeat; small ones rank
@@ -69,7 +71,9 @@ def random_samples(rng: np.random.Generator, population: int, size: int, count: 
                 return samples
             samples[repeated] = rng.integers(0, population, size=(int(repeated.sum()), size))
     keys = rng.random((count, population))
-    return np.argpartition(keys, size - 1, axis=1)[:, :size] if size < population else np.argsort(keys, axis=1)
+    if size < population:
+        return np.argpartition(keys, size - 1, axis=1)[:, :size]
+    return np.argsort(keys, axis=1)
 
 
-__all__ = ["ransac_iterations", "random_samples"]
+__all__ = ["random_samples", "ransac_iterations"]

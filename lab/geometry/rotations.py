@@ -13,6 +13,7 @@ axis-angle parameters analytic.
 from __future__ import annotations
 
 import numpy as np
+from numpy.typing import ArrayLike
 from scipy.spatial.transform import Rotation
 
 from lab.core.errors import InvalidValue
@@ -38,7 +39,7 @@ def skew(vectors: np.ndarray) -> np.ndarray:
     Reference: Hartley & Zisserman, Multiple View Geometry (2nd ed.), appendix A4.5.
     """
     v = _vectors(vectors, "vectors")
-    out = np.zeros(v.shape[:-1] + (3, 3))
+    out = np.zeros((*v.shape[:-1], 3, 3))
     out[..., 0, 1], out[..., 0, 2] = -v[..., 2], v[..., 1]
     out[..., 1, 0], out[..., 1, 2] = v[..., 2], -v[..., 0]
     out[..., 2, 0], out[..., 2, 1] = -v[..., 1], v[..., 0]
@@ -48,17 +49,19 @@ def skew(vectors: np.ndarray) -> np.ndarray:
 def rotvec_to_matrix(rotvecs: np.ndarray) -> np.ndarray:
     """Axis-angle vectors ``(..., 3)`` to rotation matrices ``(..., 3, 3)`` (``cv2.Rodrigues``)."""
     v = _vectors(rotvecs, "rotvecs")
-    return Rotation.from_rotvec(v.reshape(-1, 3)).as_matrix().reshape(v.shape[:-1] + (3, 3))
+    return Rotation.from_rotvec(v.reshape(-1, 3)).as_matrix().reshape((*v.shape[:-1], 3, 3))
 
 
 def matrix_to_rotvec(matrices: np.ndarray) -> np.ndarray:
-    """Rotation matrices ``(..., 3, 3)`` to axis-angle vectors ``(..., 3)``, angle in [0, pi] (``cv2.Rodrigues``)."""
+    """Rotation matrices ``(..., 3, 3)`` to axis-angle vectors ``(..., 3)``, angle in [0, pi]
+    (``cv2.Rodrigues``)."""
     R = _matrices(matrices, "matrices")
-    return Rotation.from_matrix(R.reshape(-1, 3, 3)).as_rotvec().reshape(R.shape[:-2] + (3,))
+    return Rotation.from_matrix(R.reshape(-1, 3, 3)).as_rotvec().reshape((*R.shape[:-2], 3))
 
 
 def nearest_rotation(matrices: np.ndarray) -> np.ndarray:
-    """The rotation closest in Frobenius norm to each ``(..., 3, 3)`` matrix: ``U diag(1, 1, det(U V^T)) V^T``.
+    """The rotation closest in Frobenius norm to each ``(..., 3, 3)`` matrix:
+    ``U diag(1, 1, det(U V^T)) V^T``.
 
     Reference: Zhang, "A flexible new technique for camera calibration" (2000), appendix C; the
     determinant correction makes the result a proper rotation (det +1) even for a reflection.
@@ -109,7 +112,8 @@ def so3_left_jacobian(rotvecs: np.ndarray) -> np.ndarray:
     return np.eye(3) + c1[..., None, None] * W + c2[..., None, None] * (W @ W)
 
 
-def look_at(eye: np.ndarray, target: np.ndarray, up: np.ndarray = (0.0, -1.0, 0.0)) -> tuple[np.ndarray, np.ndarray]:
+def look_at(eye: ArrayLike, target: ArrayLike,
+            up: ArrayLike = (0.0, -1.0, 0.0)) -> tuple[np.ndarray, np.ndarray]:
     """World-to-camera ``(R, t)`` of OpenCV cameras at ``eye`` looking at ``target``, batched ``(..., 3)``.
 
     The camera's z axis points at the target and ``up`` is the world direction that appears
@@ -133,5 +137,5 @@ def look_at(eye: np.ndarray, target: np.ndarray, up: np.ndarray = (0.0, -1.0, 0.
     return R, t
 
 
-__all__ = ["skew", "rotvec_to_matrix", "matrix_to_rotvec", "nearest_rotation", "rotation_angle_deg",
-           "so3_left_jacobian", "look_at"]
+__all__ = ["look_at", "matrix_to_rotvec", "nearest_rotation", "rotation_angle_deg", "rotvec_to_matrix",
+           "skew", "so3_left_jacobian"]

@@ -49,11 +49,13 @@ def _mask(mask: object | None, shape: tuple[int, int]) -> np.ndarray:
 def projection_matrix(K: np.ndarray, R: np.ndarray, t: np.ndarray) -> np.ndarray:
     """``P = K [R | t]``, batched: ``K``, ``R`` ``(..., 3, 3)`` and ``t`` ``(..., 3)`` -> ``(..., 3, 4)``."""
     K = np.asarray(K, dtype=np.float64)
-    Rt = np.concatenate([np.asarray(R, dtype=np.float64), np.asarray(t, dtype=np.float64)[..., None]], axis=-1)
+    Rt = np.concatenate([np.asarray(R, dtype=np.float64), np.asarray(t, dtype=np.float64)[..., None]],
+                        axis=-1)
     return K @ Rt
 
 
-def triangulate_dlt(projections: np.ndarray, points2d: np.ndarray, mask: np.ndarray | None = None) -> np.ndarray:
+def triangulate_dlt(projections: np.ndarray, points2d: np.ndarray,
+                    mask: np.ndarray | None = None) -> np.ndarray:
     """Linear triangulation: for each point the null vector of the stacked DLT rows of every view.
 
     Each view ``v`` with ``P = (p1; p2; p3)`` (rows) seeing the point at ``(x, y)`` gives two rows
@@ -199,4 +201,4 @@ def refine_points(projections: np.ndarray, points2d: np.ndarray, points3d: np.nd
     return X, np.array(history)
 
 
-__all__ = ["projection_matrix", "triangulate_dlt", "point_depths", "reprojection_residuals", "refine_points"]
+__all__ = ["point_depths", "projection_matrix", "refine_points", "reprojection_residuals", "triangulate_dlt"]
