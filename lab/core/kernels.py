@@ -16,11 +16,12 @@ the GIL), sized to the CPUs this process may use, as OpenCV sizes its own pool.
 
 from __future__ import annotations
 
+import itertools
 import os
 import threading
 from collections.abc import Callable, Sequence
 from concurrent.futures import ThreadPoolExecutor
-from typing import Any, TypeVar
+from typing import Any, TypeVar, cast
 
 import numba
 import numpy as np
@@ -31,10 +32,12 @@ _F = TypeVar("_F", bound=Callable[..., Any])
 def kernel(func: _F) -> _F:
     """``numba.njit(nogil=True)``, cached on disk where the package folder is writable (else compiled once
     per process). The returned dispatcher is called like ``func``; ``func.py_func`` is the Python original."""
+    compiled: Any
     try:
-        return numba.njit(cache=True, nogil=True)(func)  # type: ignore[no-any-return]
+        compiled = numba.njit(cache=True, nogil=True)(func)
     except RuntimeError:  # no writable cache location (a read-only install, a sandbox)
-        return numba.njit(nogil=True)(func)  # type: ignore[no-any-return]
+        compiled = numba.njit(nogil=True)(func)
+    return cast(_F, compiled)  # a Dispatcher is called as func is
 
 
 def workers() -> int:
@@ -83,7 +86,7 @@ def bands(count: int, *, parts: int | None = None) -> list[tuple[int, int]]:
     """Split ``range(count)`` into contiguous ``(start, stop)`` bands, one per worker by default."""
     parts = max(1, min(workers() if parts is None else parts, count))
     edges = np.linspace(0, count, parts + 1).round().astype(int)
-    return [(int(a), int(b)) for a, b in zip(edges[:-1], edges[1:], strict=True) if b > a]
+    return [(int(a), int(b)) for a, b in itertools.pairwise(edges) if b > a]
 
 
 __all__ = ["bands", "in_parallel", "kernel", "workers"]

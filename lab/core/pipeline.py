@@ -21,10 +21,10 @@ from typing import Any, Literal
 
 import numpy as np
 
-from lab.core.errors import (Cancelled, InvalidControl, InvalidValue, LabError, MissingInput, SessionBusy, StepFailed,
-                             UnknownName)
-from lab.core.step import (Control, Progress, StepSpec, _control_from, _docstring_params, coerce_controls, describe_step,
-                           result_to_values)
+from lab.core.errors import (Cancelled, InvalidControl, InvalidValue, LabError, MissingInput, SessionBusy,
+                             StepFailed, UnknownName)
+from lab.core.step import (Control, Progress, StepSpec, _control_from, _docstring_params, coerce_controls,
+                           describe_step, result_to_values)
 from lab.core.values import value_nbytes
 
 
@@ -159,14 +159,16 @@ class Pipeline:
     def export(self, fmt: str) -> Export:
         """The :class:`Export` of format ``fmt``; :class:`UnknownName` lists the formats there are."""
         if fmt not in self.exports:
-            raise UnknownName("format", f"module {self.name!r} exports no {fmt!r}; its formats are {sorted(self.exports)}")
+            raise UnknownName("format", f"module {self.name!r} exports no {fmt!r}; "
+                                        f"its formats are {sorted(self.exports)}")
         return self.exports[fmt]
 
     def step(self, name: str) -> StepSpec:
         for spec in self.steps:
             if spec.name == name:
                 return spec
-        raise UnknownName("step", f"module {self.name!r} has no step {name!r}; steps are {[s.name for s in self.steps]}")
+        raise UnknownName("step", f"module {self.name!r} has no step {name!r}; "
+                                  f"steps are {[s.name for s in self.steps]}")
 
     def dataset(self, name: str | None) -> DatasetSpec:
         if name is None:
@@ -174,7 +176,8 @@ class Pipeline:
         for spec in self.datasets:
             if spec.name == name:
                 return spec
-        raise UnknownName("dataset", f"module {self.name!r} has no dataset {name!r}; datasets are {[d.name for d in self.datasets]}")
+        raise UnknownName("dataset", f"module {self.name!r} has no dataset {name!r}; "
+                                     f"datasets are {[d.name for d in self.datasets]}")
 
     def producer(self, value_name: str, *, before: str | None = None) -> StepSpec | None:
         """The step that writes ``value_name``: the first in the pipeline, or with ``before`` the last
@@ -190,26 +193,33 @@ class Pipeline:
         raise UnknownName("step", f"module {self.name!r} has no step {before!r}")
 
     def plan(self, target: str | Iterable[str] | None, available: Collection[str], *,
-             stale: Collection[str] = (), dependants: bool = False, ran: Collection[str] | None = None) -> Plan:
+             stale: Collection[str] = (), dependants: bool = False,
+             ran: Collection[str] | None = None) -> Plan:
         """The steps to run, in pipeline order, to bring ``target`` up to date from data flow.
 
         ``available`` are the state names present; ``stale`` the steps whose outputs are out of date
         (they ran with other controls; the steps downstream of them are out of date too); ``ran`` the
         steps whose outputs are present, when known (a session knows; else a step has run when all it
-        writes is present, which a second writer of the same name can fake). With a target (a step name or several) the plan holds the
-        targets and, recursively, the producer of every input that is missing, stale or rewritten by
-        a planned step — nothing else: ``quilt``, which reads only ``sample``, plans only itself. With
-        ``target`` None ("Run all") it holds every step whose outputs are missing or stale and every
-        step that reads what those rewrite. ``dependants`` adds the steps downstream of the plan whose
-        outputs exist (what the run would otherwise drop), so a changed step re-runs what depends on it.
+        writes is present, which a second writer of the same name can fake).
+
+        With a target (a step name or several) the plan holds the targets and, recursively, the producer
+        of every input that is missing, stale or rewritten by a planned step — nothing else: ``quilt``,
+        which reads only ``sample``, plans only itself. With ``target`` None ("Run all") it holds every
+        step whose outputs are missing or stale and every step that reads what those rewrite.
+        ``dependants`` adds the steps downstream of the plan whose outputs exist (what the run would
+        otherwise drop), so a changed step re-runs what depends on it.
 
         The producer of an input is the last step ahead of the reader that writes it
         (:meth:`producer` with ``before``); an input no step writes is the dataset's.
         """
         have = set(available)
         stale_set = {self.step(name).name for name in stale}
-        ran_set = {s.name for s in self.steps if s.writes and have.issuperset(s.writes)} if ran is None else set(ran)
-        stale_set |= {s.name for s in self.downstream(w for n in stale_set for w in self.step(n).writes)} & ran_set
+        if ran is None:
+            ran_set = {s.name for s in self.steps if s.writes and have.issuperset(s.writes)}
+        else:
+            ran_set = set(ran)
+        stale_writes = [w for name in stale_set for w in self.step(name).writes]
+        stale_set |= {s.name for s in self.downstream(stale_writes)} & ran_set
         reasons: dict[str, PlanReason] = {}
 
         def out_of_date(spec: StepSpec) -> PlanReason | None:
@@ -349,8 +359,9 @@ class Session:
     grader and the viewer's lesson mode); they run in place of the reference step.
     """
 
-    def __init__(self, pipeline: Pipeline, loaded: Loaded, *, dataset: str, options: dict[str, Any] | None = None,
-                 seed: int = 0, session_id: str | None = None) -> None:
+    def __init__(self, pipeline: Pipeline, loaded: Loaded, *, dataset: str,
+                 options: Mapping[str, Any] | None = None, seed: int = 0,
+                 session_id: str | None = None) -> None:
         self.id = session_id or uuid.uuid4().hex[:12]
         self.pipeline = pipeline
         self.dataset = dataset
@@ -376,7 +387,8 @@ class Session:
         if name not in self.state:
             producer = self.pipeline.producer(name)
             hint = f"; run step {producer.name!r} first" if producer else ""
-            raise UnknownName("value", f"session has no value {name!r}{hint}; values are {sorted(self.state)}")
+            raise UnknownName("value", f"session has no value {name!r}{hint}; "
+                                       f"values are {sorted(self.state)}")
         return self.state[name]
 
     def nbytes(self) -> int:
@@ -473,7 +485,8 @@ class Session:
 
     def _exclusive(self):
         if not self.lock.acquire(blocking=False):
-            raise SessionBusy("session", f"step {self.running!r} is running in this session; wait or cancel it")
+            raise SessionBusy("session", f"step {self.running!r} is running in this session; "
+                                         "wait or cancel it")
         session = self
 
         class _Release:
@@ -498,7 +511,7 @@ class Session:
         """The seed a step's ``rng`` gets: fixed per (session seed, step), recorded in history."""
         return int(np.random.SeedSequence([self.seed, zlib.crc32(step.encode())]).generate_state(1)[0])
 
-    def run(self, step: str, params: dict[str, Any] | None = None, *,
+    def run(self, step: str, params: Mapping[str, Any] | None = None, *,
             override: Callable[..., Any] | None = None, on_progress: ProgressCallback | None = None,
             device: str | None = None) -> RunRecord:
         """Run one step on the current state and write its outputs back.
@@ -517,8 +530,10 @@ class Session:
                     args.append(None)
                 else:
                     producer = self.pipeline.producer(inp.name)
-                    how = f"run step {producer.name!r} first" if producer else "upload it or pick a dataset that has it"
-                    raise MissingInput(inp.name, f"step {step!r} reads {inp.name!r}, which does not exist yet: {how}")
+                    how = (f"run step {producer.name!r} first" if producer
+                           else "upload it or pick a dataset that has it")
+                    raise MissingInput(inp.name, f"step {step!r} reads {inp.name!r}, "
+                                                 f"which does not exist yet: {how}")
             kwargs = dict(controls)
             seed = self.step_seed(step)
             if "rng" in spec.runner_args:
@@ -657,5 +672,5 @@ def open_session(pipeline: Pipeline, dataset: str | None = None, options: dict[s
     return Session(pipeline, loaded, dataset=spec.name, options=options, seed=seed, session_id=session_id)
 
 
-__all__ = ["DatasetSpec", "Export", "Loaded", "Pipeline", "Plan", "PlanReason", "RunRecord", "RunStatus", "Session",
-           "StepParams", "StepStatus", "default_device", "open_session"]
+__all__ = ["DatasetSpec", "Export", "Loaded", "Pipeline", "Plan", "PlanReason", "RunRecord", "RunStatus",
+           "Session", "StepParams", "StepStatus", "default_device", "open_session"]

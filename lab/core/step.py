@@ -159,11 +159,12 @@ class Control:
         if self.kind == "tuple":
             if isinstance(value, str):  # "9x6", "9, 6", "(9 6)"; an "x" splits only numbers
                 numeric = all(k in ("int", "float") for k in self.item_kinds)
-                value = [v for v in re.split(r"[,x\s]+" if numeric else r"\s*,\s*", value.strip("()[] ")) if v]
+                separators = r"[,x\s]+" if numeric else r"\s*,\s*"
+                value = [v for v in re.split(separators, value.strip("()[] ")) if v]
             if not isinstance(value, (list, tuple)) or len(value) != len(self.item_kinds):
                 raise InvalidControl(where, f"must be a list of {len(self.item_kinds)} values, got {value!r}")
             return tuple(_coerce_scalar(f"{where}[{i}]", k, v, self.minimum, self.maximum)
-                         for i, (k, v) in enumerate(zip(self.item_kinds, value)))
+                         for i, (k, v) in enumerate(zip(self.item_kinds, value, strict=True)))
         return _coerce_scalar(where, self.kind, value, self.minimum, self.maximum)
 
 
@@ -185,7 +186,8 @@ def coerce_controls(controls: tuple[Control, ...], params: Mapping[str, Any] | N
             values[control.name] = control.default
     if given:
         unknown = next(iter(given))
-        raise InvalidControl(unknown, f"{owner} has no {noun} {unknown!r}; {noun}s are {[c.name for c in controls]}")
+        raise InvalidControl(unknown, f"{owner} has no {noun} {unknown!r}; "
+                                      f"{noun}s are {[c.name for c in controls]}")
     return values
 
 
@@ -206,7 +208,8 @@ def _coerce_scalar(where: str, kind: str, value: Any, minimum: float | None, max
         try:
             value = float(value) if kind == "float" else int(value, 10)
         except ValueError:
-            raise InvalidControl(where, f"must be {'a number' if kind == 'float' else 'an integer'}, got {value!r}") from None
+            wanted = "a number" if kind == "float" else "an integer"
+            raise InvalidControl(where, f"must be {wanted}, got {value!r}") from None
     if kind == "int":
         if isinstance(value, (float, np.floating)) and float(value).is_integer():
             value = int(value)
@@ -280,7 +283,8 @@ class StepSpec:
                                    f"controls are {[c.name for c in self.controls]}")
 
     def coerce_controls(self, params: Mapping[str, Any] | None) -> dict[str, Any]:
-        """Defaults overridden by ``params``, each checked; unknown names are an error (:func:`coerce_controls`)."""
+        """Defaults overridden by ``params``, each checked; unknown names are an error
+        (:func:`coerce_controls`)."""
         return coerce_controls(self.controls, params, owner=f"step {self.name!r}")
 
     def json_schema(self) -> dict[str, Any]:
@@ -322,7 +326,8 @@ def type_name(annotation: Any) -> str:
 
 
 def _docstring_params(doc: str) -> dict[str, str]:
-    """``name: text`` items of an ``Args:`` / ``Controls:`` section (Google style), continuation lines joined."""
+    """``name: text`` items of an ``Args:`` / ``Controls:`` section (Google style), continuation lines
+    joined."""
     found: dict[str, str] = {}
     item_indent: int | None = None
     current: str | None = None
@@ -378,7 +383,8 @@ def _control_from(name: str, annotation: Any, default: Any, description: str) ->
 
 
 def _scalar_kind(name: str, annotation: Any) -> ScalarKind:
-    kinds: tuple[tuple[ScalarKind, type], ...] = (("bool", bool), ("int", int), ("float", float), ("str", str))
+    kinds: tuple[tuple[ScalarKind, type], ...] = (
+        ("bool", bool), ("int", int), ("float", float), ("str", str))
     for kind, cls in kinds:
         if annotation is cls:
             return kind
@@ -424,15 +430,18 @@ def describe_step(func: Callable[..., Any], *, name: str | None = None) -> StepS
     if is_generator != inspect.isgeneratorfunction(func) and inspect.isgeneratorfunction(func):
         is_generator = True
     outputs: list[Output] = []
-    if dataclasses.is_dataclass(result_type) and not is_step_result(result_type) and not _is_value_type(result_type):
-        raise TypeError(f"step {name}: returns dataclass {result_type.__name__}, which is neither a value type "
-                        "of lab.core.values nor marked @step_result; mark it to write its fields by name")
+    if isinstance(result_type, type) and dataclasses.is_dataclass(result_type) \
+            and not is_step_result(result_type) and not _is_value_type(result_type):
+        raise TypeError(f"step {name}: returns dataclass {result_type.__name__}, which is neither a value "
+                        "type of lab.core.values nor marked @step_result; mark it to write its fields by "
+                        "name")
     if is_step_result(result_type):
         field_hints = typing.get_type_hints(result_type, include_extras=True)
         for f in dataclasses.fields(result_type):
             hint = field_hints.get(f.name, f.type)
-            outputs.append(Output(f.name, hint, bool(f.metadata.get("metric")), f.metadata.get("description", ""),
-                                  f.metadata.get("unit", ""), is_warnings=is_warnings(hint)))
+            outputs.append(Output(f.name, hint, bool(f.metadata.get("metric")),
+                                  f.metadata.get("description", ""), f.metadata.get("unit", ""),
+                                  is_warnings=is_warnings(hint)))
     elif result_type is not inspect.Parameter.empty and result_type is not None:
         output_name = name
         if typing.get_origin(result_type) is Annotated:  # -> Annotated[np.ndarray, "homographies"]
@@ -465,7 +474,8 @@ def result_to_values(spec: StepSpec, result: Any) -> StepOutcome:
     if not is_step_result(spec.result_type):
         return StepOutcome({spec.outputs[0].name: result} if spec.outputs else {}, {})
     if not isinstance(result, spec.result_type):
-        raise TypeError(f"step {spec.name} must return {spec.result_type.__name__}, got {type(result).__name__}")
+        raise TypeError(f"step {spec.name} must return {spec.result_type.__name__}, "
+                        f"got {type(result).__name__}")
     values: dict[str, Any] = {}
     metrics: dict[str, Any] = {}
     warnings: tuple[str, ...] = ()
