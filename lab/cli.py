@@ -21,7 +21,7 @@ import json
 import sys
 from collections.abc import Iterator
 from pathlib import Path
-from typing import TYPE_CHECKING, Annotated, Any, Optional
+from typing import TYPE_CHECKING, Annotated, Any
 
 import typer
 from typer.core import TyperGroup
@@ -289,13 +289,13 @@ app = typer.Typer(
     pretty_exceptions_enable=False,
 )
 
-DatasetOpt = Annotated[Optional[str], typer.Option(
+DatasetOpt = Annotated[str | None, typer.Option(
     "--dataset", "-d", help="A dataset name (default: the module's first) or a folder/file of your own.")]
-OptionOpt = Annotated[Optional[list[str]], typer.Option(
+OptionOpt = Annotated[list[str] | None, typer.Option(
     "--option", "-o", metavar="KEY=VALUE", help="A dataset option, e.g. num_views=10 (repeatable).")]
-SetOpt = Annotated[Optional[list[str]], typer.Option(
+SetOpt = Annotated[list[str] | None, typer.Option(
     "--set", "-s", metavar="STEP.CONTROL=VALUE", help="A step control, e.g. detect_corners.window=7 (repeatable).")]
-UntilOpt = Annotated[Optional[str], typer.Option("--until", "-u", metavar="STEP",
+UntilOpt = Annotated[str | None, typer.Option("--until", "-u", metavar="STEP",
                                                  help="Stop after this step (default: run every step).")]
 SeedOpt = Annotated[int, typer.Option("--seed", help="Seed of every step's random generator.")]
 
@@ -305,7 +305,7 @@ def serve(
     host: Annotated[str, typer.Option(help="Address to bind (0.0.0.0 to serve other machines).")] = "127.0.0.1",
     port: Annotated[int, typer.Option(min=1, max=65535, help="Port of the landing page and REST API.")] = 8000,
     viewer_port: Annotated[int, typer.Option(min=1, max=65535, help="Port of the 3D viewer.")] = 8080,
-    data_root: Annotated[Optional[Path], typer.Option(
+    data_root: Annotated[Path | None, typer.Option(
         help="Only folders under this one may be loaded as datasets (set it when serving beyond 127.0.0.1).")] = None,
     unsafe_sandbox: Annotated[bool, typer.Option(
         "--unsafe-sandbox", help="Grade submissions without the bubblewrap sandbox, with Python's audit hook only. "
@@ -416,10 +416,10 @@ def export(
     fmt: Annotated[str, typer.Option("--format", "-f", help=f"One of {', '.join(EXPORT_FORMATS)}, or a format of "
                                                             "the module's own (listed by 'vision-lab modules').")],
     out: Annotated[Path, typer.Option("--out", help="The file to write (folders are created).")],
-    what: Annotated[Optional[str], typer.Option(
+    what: Annotated[str | None, typer.Option(
         "--what", "-w", help="The state value to write, e.g. K, corners, cloud (a module's format writes what "
                              "it needs: leave it out).")] = None,
-    index: Annotated[Optional[int], typer.Option(help="One view of an image set (png, npy).")] = None,
+    index: Annotated[int | None, typer.Option(help="One view of an image set (png, npy).")] = None,
     dataset: DatasetOpt = None,
     option: OptionOpt = None,
     set_: SetOpt = None,
@@ -479,5 +479,13 @@ from lab.lessons.cli import register as _register_lessons  # noqa: E402
 
 _register_lessons(app)
 
-__all__ = ["app", "module_names", "lookup_pipeline", "parse_options", "parse_settings", "summary",
-           "EXPORT_FORMATS", "EXIT_USAGE"]
+__all__ = [
+    "EXIT_USAGE",
+    "EXPORT_FORMATS",
+    "app",
+    "lookup_pipeline",
+    "module_names",
+    "parse_options",
+    "parse_settings",
+    "summary",
+]

@@ -8,7 +8,8 @@ shares); ``app.state.catalog`` knows the modules, ``app.state.runs`` tracks runn
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Annotated, Callable, Sequence
+from typing import Annotated
+from collections.abc import Callable, Sequence
 
 from fastapi import Depends, Path, Request
 
