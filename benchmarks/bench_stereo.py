@@ -40,9 +40,8 @@ import cv2
 import numpy as np
 
 from lab.core import Image
-from lab.data.stereo import motorcycle
-from lab.modules.stereo import (aggregate_costs, cost_volume, disparity_errors, filter_disparity, left_right_check,
-                                refine_subpixel, winner_take_all)
+from lab.modules.stereo import (aggregate_costs, cost_volume, disparity_errors, filter_disparity,
+                                left_right_check, motorcycle, refine_subpixel, winner_take_all)
 
 MAX_DISPARITY = 63  # 64 disparities, OpenCV's numDisparities = 64
 
@@ -70,7 +69,8 @@ def sgbm(bgr_left: np.ndarray, bgr_right: np.ndarray) -> np.ndarray:
     return _from_fixed_point(matcher.compute(bgr_left, bgr_right))
 
 
-def stereobm(gray_left: np.ndarray, gray_right: np.ndarray, *, block: int, strict: bool = False) -> np.ndarray:
+def stereobm(gray_left: np.ndarray, gray_right: np.ndarray, *, block: int,
+             strict: bool = False) -> np.ndarray:
     matcher = cv2.StereoBM_create(numDisparities=MAX_DISPARITY + 1, blockSize=block)
     if strict:
         matcher.setUniquenessRatio(30)
@@ -125,7 +125,8 @@ def main() -> None:
     cpus = len(os.sched_getaffinity(0))
     print(f"motorcycle {left.width} x {left.height}, disparities 0..{MAX_DISPARITY}, {cpus} CPU(s); "
           "rates in % of the pixels with a true disparity")
-    print(f"{'method':<34s} {'bad2 all':>9s} {'bad2 pred':>10s} {'coverage':>9s} {'EPE px':>7s} {'time ms':>9s}")
+    print(f"{'method':<34s} {'bad2 all':>9s} {'bad2 pred':>10s} {'coverage':>9s} {'EPE px':>7s} "
+          f"{'time ms':>9s}")
     names = {"sgm": "ours SGM (census 5x5, 8 paths)", "sgbm": "cv2.StereoSGBM (3-way, block 3)",
              "census": "ours census BM (5x5)", "stereobm": f"cv2.StereoBM (block {best_block})",
              "stereobm_strict": "cv2.StereoBM strict (block 5)"}
@@ -142,8 +143,8 @@ def main() -> None:
                         f"{key}_bad1_all": errors["bad1_all"], f"{key}_bad4_all": errors["bad4_all"],
                         f"{key}_coverage": errors["coverage"], f"{key}_epe_px": errors["epe_px"],
                         f"{key}_time_s": seconds})
-    details.update({"sgm_time_ratio": sgm_ratio, "census_time_ratio": census_ratio, "stereobm_block": best_block,
-                    "cpus": cpus})
+    details.update({"sgm_time_ratio": sgm_ratio, "census_time_ratio": census_ratio,
+                    "stereobm_block": best_block, "cpus": cpus})
     details = {k: round(v, 6) if isinstance(v, float) else v for k, v in details.items()}
     print("DETAILS " + json.dumps(details))
     print("RESULT " + json.dumps({key: details[key] for key in RESULT_KEYS}))

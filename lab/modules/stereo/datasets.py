@@ -1,4 +1,5 @@
-"""Stereo pairs with their calibration: Middlebury's motorcycle, synthetic pairs with exact disparity, a user's folder.
+"""Stereo pairs with their calibration: Middlebury's motorcycle, synthetic pairs with exact disparity, a
+user's folder.
 
 Every loader returns the state ``left_raw``, ``right_raw`` (:class:`lab.core.Image`) and
 ``calibration`` (:class:`lab.geometry.rectification.StereoCalibration`); a pair that is rectified
@@ -45,7 +46,8 @@ def _downsample(pixels: np.ndarray, factor: int) -> np.ndarray:
 
 
 def _downsample_disparity(disparity: np.ndarray, factor: int) -> np.ndarray:
-    """Block mean of the known disparities, divided by ``factor`` (disparities shrink with the image); -1 unknown."""
+    """Block mean of the known disparities, divided by ``factor`` (disparities shrink with the image); -1
+    unknown."""
     if factor == 1:
         return disparity
     known = disparity >= 0
@@ -66,8 +68,8 @@ def _downsampled_calibration(calibration: StereoCalibration, factor: int) -> Ste
     if factor == 1:
         return calibration
     return StereoCalibration(_downsampled_K(calibration.K_left, factor), calibration.dist_left,
-                             _downsampled_K(calibration.K_right, factor), calibration.dist_right, calibration.R,
-                             calibration.T)
+                             _downsampled_K(calibration.K_right, factor), calibration.dist_right,
+                             calibration.R, calibration.T)
 
 
 def _motorcycle_calibration() -> StereoCalibration:
@@ -77,7 +79,8 @@ def _motorcycle_calibration() -> StereoCalibration:
 
 
 def motorcycle(*, downsample: Annotated[int, Range(1, 8)] = 1) -> Loaded:
-    """The Middlebury 2014 motorcycle pair shipped with scikit-image (741 x 500, rectified), with true disparity.
+    """The Middlebury 2014 motorcycle pair shipped with scikit-image (741 x 500, rectified), with true
+    disparity.
 
     ``skimage.data.stereo_motorcycle()`` (offline in the wheel): disparities 7 to 60 px, about
     7 % of the pixels without truth. ``downsample`` shrinks both images (block means) and the
@@ -104,16 +107,17 @@ def motorcycle(*, downsample: Annotated[int, Range(1, 8)] = 1) -> Loaded:
     return Loaded(state={"left_raw": Image(left, name="motorcycle left"),
                          "right_raw": Image(right, name="motorcycle right"), "calibration": calibration},
                   truth={"disparity": truth, "depth": depth},
-                  description=f"Middlebury 2014 motorcycle (scikit-image), {left.shape[1]} x {left.shape[0]}, "
-                              "rectified, with true disparity")
+                  description=f"Middlebury 2014 motorcycle (scikit-image), {left.shape[1]} x "
+                              f"{left.shape[0]}, rectified, with true disparity")
 
 
-# --- synthetic pairs rendered with exact disparity ------------------------------------------------------------
+# --- synthetic pairs rendered with exact disparity ------------------------------------------------------
 def synthetic(*, scene: Literal["table", "room", "facade"] = "table", rectified: bool = True,
               width: Annotated[int, Range(32, 1920)] = 640, height: Annotated[int, Range(32, 1080)] = 480,
               baseline: Annotated[float, Range(0.01, 2.0)] = 0.12,
-              verge_deg: Annotated[float, Range(0.0, 20.0)] = 4.0, k1: Annotated[float, Range(-0.3, 0.3)] = -0.05,
-              noise: Annotated[float, Range(0.0, 0.2)] = 0.0, seed: Annotated[int, Range(0, None)] = 0) -> Loaded:
+              verge_deg: Annotated[float, Range(0.0, 20.0)] = 4.0,
+              k1: Annotated[float, Range(-0.3, 0.3)] = -0.05, noise: Annotated[float, Range(0.0, 0.2)] = 0.0,
+              seed: Annotated[int, Range(0, None)] = 0) -> Loaded:
     """A pair rendered from a named scene by the shared ray caster, with exact disparity and depth.
 
     The left camera sits at the scene's home viewpoint; the right one ``baseline`` metres along
@@ -147,10 +151,11 @@ def synthetic(*, scene: Literal["table", "room", "facade"] = "table", rectified:
     views = [render(world, rig, index, supersample=2) for index in (0, 1)]
     rng = np.random.default_rng([int(seed), 7])
     images = []
-    for view, side in zip(views, ("left", "right")):
+    for view, side in zip(views, ("left", "right"), strict=True):
         pixels = view.image.pixels
         if noise > 0:
-            pixels = np.clip(pixels + rng.normal(0.0, float(noise), pixels.shape), 0.0, 1.0).astype(np.float32)
+            noisy = pixels + rng.normal(0.0, float(noise), pixels.shape)
+            pixels = np.clip(noisy, 0.0, 1.0).astype(np.float32)
         images.append(Image(pixels, name=f"{scene} {side}"))
     R, T = relative_pose(rig.R[0], rig.t[0], rig.R[1], rig.t[1])
     d = as_distortion(dist)
@@ -161,7 +166,8 @@ def synthetic(*, scene: Literal["table", "room", "facade"] = "table", rectified:
         rows, columns = np.nonzero(depth > 0)
     else:
         rect = stereo_rectify(rig.K[0], d, rig.K[1], d, (int(width), int(height)), R, T)
-        rectified_left = Cameras(rect.K, rect.R_left @ rig.R[0], rect.R_left @ rig.t[0], int(width), int(height))
+        rectified_left = Cameras(rect.K, rect.R_left @ rig.R[0], rect.R_left @ rig.t[0], int(width),
+                                 int(height))
         view = render(world, rectified_left, 0, supersample=1)
         depth = np.where(view.mask, view.depth, 0.0)
         focal = rect.K[0, 0]
@@ -174,12 +180,12 @@ def synthetic(*, scene: Literal["table", "room", "facade"] = "table", rectified:
         in_rectified = (pixels @ np.linalg.inv(rect.K).T) * depth[rows[pick], columns[pick]][:, None]
         truth["points"] = in_rectified @ rect.R_left  # rectified frame -> raw left camera frame
     kind = "rectified" if rectified else f"verged {verge_deg:g} deg with k1 = {k1:g}"
-    return Loaded(state={"left_raw": images[0], "right_raw": images[1], "calibration": calibration}, truth=truth,
-                  description=f"synthetic {scene}, {width} x {height}, baseline {baseline:g} m, {kind}, "
-                              "exact disparity")
+    return Loaded(state={"left_raw": images[0], "right_raw": images[1], "calibration": calibration},
+                  truth=truth, description=f"synthetic {scene}, {width} x {height}, baseline {baseline:g} m, "
+                                           f"{kind}, exact disparity")
 
 
-# --- a user's folder ------------------------------------------------------------------------------------------
+# --- a user's folder ------------------------------------------------------------------------------------
 #: File stems recognised in a folder (Middlebury's im0/im1/disp0 too).
 LEFT_NAMES = ("left", "im0")
 RIGHT_NAMES = ("right", "im1")
@@ -217,8 +223,8 @@ def read_disparity(path: str) -> np.ndarray:
     try:
         decoded = read_image_file(path)
     except InvalidValue:
-        raise InvalidValue("path", f"{os.path.basename(path)} is not a disparity image OpenCV can read (PNG, PFM ...)"
-                           ) from None
+        raise InvalidValue("path", f"{os.path.basename(path)} is not a disparity image OpenCV can read (PNG, "
+                                   "PFM ...)") from None
     if decoded.ndim == 3:
         decoded = decoded[:, :, 0]
     values = decoded.astype(np.float64)
@@ -247,7 +253,8 @@ def _read_opencv_yaml(path: str) -> dict[str, Any]:
     try:
         root = storage.root()
         out = {}
-        for key in root.keys():
+        names = root.keys()  # a cv2.FileNode's names (it has no __iter__)
+        for key in names:
             out[key] = _node_value(root.getNode(key))
         return out
     finally:
@@ -255,7 +262,7 @@ def _read_opencv_yaml(path: str) -> dict[str, Any]:
 
 
 def _node_value(node: Any) -> Any:
-    if node.isMap() and "data" in node.keys():  # !!opencv-matrix
+    if node.isMap() and "data" in list(node.keys()):  # !!opencv-matrix
         return node.mat()
     if node.isSeq():
         return [_node_value(node.at(i)) for i in range(node.size())]
@@ -267,7 +274,8 @@ def _node_value(node: Any) -> Any:
 
 
 def _read_middlebury(path: str) -> dict[str, Any]:
-    """Middlebury's ``calib.txt``: ``cam0=[f 0 cx; 0 f cy; 0 0 1]``, ``cam1=...``, ``doffs=``, ``baseline=`` (mm)."""
+    """Middlebury's ``calib.txt``: ``cam0=[f 0 cx; 0 f cy; 0 0 1]``, ``cam1=...``, ``doffs=``,
+    ``baseline=`` (mm)."""
     out: dict[str, Any] = {}
     with open(path, encoding="utf-8") as handle:
         for line in handle:
@@ -312,9 +320,11 @@ def read_calibration(path: str) -> StereoCalibration:
     try:
         if "R" in values and "T" in values:
             if "K_left" not in values or "K_right" not in values:
-                raise InvalidValue("path", f"{name} has R and T but not both camera matrices (K1/M1 and K2/M2)")
-            return StereoCalibration(values["K_left"], values.get("dist_left"), values["K_right"],
-                                     values.get("dist_right"), values["R"], np.ravel(values["T"]))
+                raise InvalidValue("path", f"{name} has R and T but not both camera matrices (K1/M1 and "
+                                           "K2/M2)")
+            none = np.zeros(5)  # no distortion given: none
+            return StereoCalibration(values["K_left"], values.get("dist_left", none), values["K_right"],
+                                     values.get("dist_right", none), values["R"], np.ravel(values["T"]))
         if "K_left" in values and "baseline" in values:
             K = np.asarray(values["K_left"], dtype=np.float64).reshape(3, 3)
             offset = float(values.get("doffs", 0.0))
@@ -325,8 +335,8 @@ def read_calibration(path: str) -> StereoCalibration:
         raise InvalidValue("path", f"{name}: {exc.field}: {exc.reason}") from None
     except (TypeError, ValueError) as exc:
         raise InvalidValue("path", f"{name}: {exc}") from None
-    raise InvalidValue("path", f"{name} needs either K and baseline (a rectified pair) or K1, D1, K2, D2, R and T "
-                               f"(a calibrated pair to rectify); found {sorted(raw)}")
+    raise InvalidValue("path", f"{name} needs either K and baseline (a rectified pair) or K1, D1, K2, D2, R "
+                               f"and T (a calibrated pair to rectify); found {sorted(raw)}")
 
 
 def folder(*, path: str, downsample: Annotated[int, Range(1, 8)] = 1) -> Loaded:
@@ -346,12 +356,13 @@ def folder(*, path: str, downsample: Annotated[int, Range(1, 8)] = 1) -> Loaded:
     left_path = _find(directory, LEFT_NAMES, IMAGE_SUFFIXES)
     right_path = _find(directory, RIGHT_NAMES, IMAGE_SUFFIXES)
     if left_path is None or right_path is None:
-        raise InvalidValue("path", f"{path!r} needs a left and a right image named left.* and right.* (or im0.*, "
-                                   f"im1.*) in a format OpenCV reads")
+        raise InvalidValue("path", f"{path!r} needs a left and a right image named left.* and right.* (or "
+                                   f"im0.*, im1.*) in a format OpenCV reads")
     left, right = read_images([left_path, right_path])
     if left.pixels.shape[:2] != right.pixels.shape[:2]:
-        raise InvalidValue("path", f"the images differ in size: {os.path.basename(left_path)} is {left.width} x "
-                                   f"{left.height}, {os.path.basename(right_path)} is {right.width} x {right.height}")
+        raise InvalidValue("path", f"the images differ in size: {os.path.basename(left_path)} is "
+                                   f"{left.width} x {left.height}, {os.path.basename(right_path)} is "
+                                   f"{right.width} x {right.height}")
     calibration_path = next((os.path.join(directory, n) for n in os.listdir(directory)
                              if n.lower() in CALIBRATION_NAMES), None)
     if calibration_path is None:
@@ -365,26 +376,24 @@ def folder(*, path: str, downsample: Annotated[int, Range(1, 8)] = 1) -> Loaded:
     factor = int(downsample)
     if factor > 1:
         if min(left.width, left.height) < 2 * factor:
-            raise InvalidValue("downsample", f"the {left.width} x {left.height} images are too small to shrink "
-                                             f"{factor} times")
-        left, right = (Image(_downsample(im.pixels, factor).astype(np.float32), name=im.name) for im in (left, right))
+            raise InvalidValue("downsample", f"the {left.width} x {left.height} images are too small to "
+                                             f"shrink {factor} times")
+        left, right = (Image(_downsample(im.pixels, factor).astype(np.float32), name=im.name)
+                       for im in (left, right))
         calibration = _downsampled_calibration(calibration, factor)
     truth: dict[str, Any] = {}
-    disparity_path = _find(directory, DISPARITY_NAMES, IMAGE_SUFFIXES + (".pfm",))
+    disparity_path = _find(directory, DISPARITY_NAMES, (*IMAGE_SUFFIXES, ".pfm"))
     if disparity_path is not None:
         if not calibration.is_rectified():
-            raise InvalidValue("path", f"{os.path.basename(disparity_path)}: a true disparity goes with a pair that is "
-                                       "rectified already, but the calibration describes an unrectified pair")
+            raise InvalidValue("path", f"{os.path.basename(disparity_path)}: a true disparity goes with a "
+                                       "pair that is rectified already, but the calibration describes an "
+                                       "unrectified pair")
         disparity = _downsample_disparity(read_disparity(disparity_path), factor)
         if disparity.shape != (left.height, left.width):
             raise InvalidValue("path", f"{os.path.basename(disparity_path)} is {disparity.shape[1]} x "
                                        f"{disparity.shape[0]}, the images {left.width} x {left.height}")
         truth["disparity"] = disparity
     return Loaded(state={"left_raw": left, "right_raw": right, "calibration": calibration}, truth=truth,
-                  description=f"{os.path.basename(os.path.normpath(directory))}: {left.width} x {left.height}, {how}"
-                              + (", true disparity" if truth else ""))
+                  description=f"{os.path.basename(os.path.normpath(directory))}: {left.width} x "
+                              f"{left.height}, {how}" + (", true disparity" if truth else ""))
 
-
-__all__ = ["motorcycle", "synthetic", "folder", "read_calibration", "read_disparity", "MOTORCYCLE_FOCAL_PX",
-           "MOTORCYCLE_CENTRE_PX", "MOTORCYCLE_DOFFS_PX", "MOTORCYCLE_BASELINE_M", "LEFT_NAMES", "RIGHT_NAMES",
-           "DISPARITY_NAMES", "CALIBRATION_NAMES"]
