@@ -140,7 +140,8 @@ def image_file(*, path: str, max_size: Annotated[int, Range(8, 1024)] = 128, tar
     longest = max(pixels.shape[:2])
     if longest > int(max_size):
         scale = int(max_size) / longest
-        pixels = _resize(pixels, max(1, round(pixels.shape[0] * scale)), max(1, round(pixels.shape[1] * scale)))
+        pixels = _resize(pixels, max(1, round(pixels.shape[0] * scale)),
+                         max(1, round(pixels.shape[1] * scale)))
     colour = pixels.ndim == 3
     return Loaded(state={"sample": Image(pixels, name=os.path.basename(path)),
                          "transfer_target": transfer_target(target, int(target_size), colour=colour)},
@@ -158,7 +159,8 @@ def procedural_pixels(pattern: str, size: int, rng: np.random.Generator, *, peri
     - ``noise``: i.i.d. Gaussian, mean 0.5, std 0.15 (flat spectrum: nothing to copy but the histogram).
     - ``blobs``: white noise low-passed by a Gaussian of sigma 2 px, rescaled to mean 0.5, std 0.15.
     - ``stripes``: ``0.5 + 0.35 sin(2 pi (x cos t + y sin t) / period + phase)``, std 0.35 / sqrt 2.
-    - ``dots``: disks of radius 2 px at Poisson-distributed centres (density 1 per 64 px^2), value 0.85 on 0.15.
+    - ``dots``: disks of radius 2 px at Poisson-distributed centres (density 1 per 64 px^2), value
+      0.85 on 0.15.
     """
     yy, xx = np.mgrid[0:size, 0:size].astype(np.float64)
     truth: dict[str, float]
@@ -169,13 +171,15 @@ def procedural_pixels(pattern: str, size: int, rng: np.random.Generator, *, peri
         from scipy.ndimage import gaussian_filter
 
         field = gaussian_filter(rng.standard_normal((size, size)), 2.0, mode="wrap")
-        field /= np.sqrt(1.0 / (16.0 * np.pi))  # the std of unit white noise blurred by sigma 2: 1 / sqrt(4 pi sigma^2)
+        # the std of unit white noise blurred by sigma 2: 1 / sqrt(4 pi sigma^2)
+        field /= np.sqrt(1.0 / (16.0 * np.pi))
         pixels = 0.5 + 0.15 * field
         truth = {"mean": 0.5, "std": 0.15}
     elif pattern == "stripes":
         angle = np.deg2rad(orientation_deg)
         phase = rng.uniform(0.0, 2 * np.pi)
-        pixels = 0.5 + 0.35 * np.sin(2 * np.pi * (xx * np.cos(angle) + yy * np.sin(angle)) / period_px + phase)
+        along = xx * np.cos(angle) + yy * np.sin(angle)
+        pixels = 0.5 + 0.35 * np.sin(2 * np.pi * along / period_px + phase)
         truth = {"mean": 0.5, "std": 0.35 / np.sqrt(2.0), "period_px": float(period_px),
                  "orientation_deg": float(orientation_deg)}
     elif pattern == "dots":
@@ -188,7 +192,8 @@ def procedural_pixels(pattern: str, size: int, rng: np.random.Generator, *, peri
         mean = 0.15 + 0.7 * coverage
         truth = {"mean": float(mean), "std": float(0.7 * np.sqrt(coverage * (1 - coverage)))}
     else:
-        raise InvalidValue("pattern", f"unknown pattern {pattern!r}; patterns are noise, blobs, stripes, dots")
+        raise InvalidValue("pattern", f"unknown pattern {pattern!r}; "
+                                      "patterns are noise, blobs, stripes, dots")
     return np.clip(pixels, 0.0, 1.0).astype(np.float32), truth
 
 
@@ -231,8 +236,8 @@ def procedural(*, pattern: Pattern = "blobs", size: Annotated[int, Range(8, 512)
     return Loaded(state={"sample": Image(pixels.astype(np.float32), name=f"{pattern}"),
                          "transfer_target": transfer_target(target, int(target_size), colour=bool(colour))},
                   truth=truth,
-                  description=f"procedural {pattern}, {size} x {size}, {'colour' if colour else 'grayscale'}, "
-                              f"seed {seed}")
+                  description=f"procedural {pattern}, {size} x {size}, "
+                              f"{'colour' if colour else 'grayscale'}, seed {seed}")
 
 
 __all__ = ["SKIMAGE_TEXTURES", "brick", "grass", "gravel", "image_file", "procedural", "procedural_pixels",

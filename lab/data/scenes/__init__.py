@@ -15,12 +15,10 @@ from lab.data.scenes.cameras import DEFAULT_FOV_DEG, forward_cameras, intrinsics
 from lab.data.scenes.named import SCENE_NAMES, named_scene
 from lab.data.scenes.objects import NEAR, Box, MeshObject, Plane, Scene, SceneObject, Sphere, moller_trumbore
 from lab.data.scenes.render import MAX_SUPERSAMPLE, Rendering, pixel_rays, render, render_views
-from lab.data.scenes.textures import (PHOTO_NAMES, Texture, atlas, noise_texture, photo, shapes_texture, tinted,
-                                      wood_texture)
+from lab.data.scenes.textures import (PHOTO_NAMES, Texture, atlas, noise_texture, photo, shapes_texture,
+                                      tinted, wood_texture)
 
-__all__ = [
-    "Scene", "Plane", "Box", "Sphere", "MeshObject", "SceneObject", "NEAR", "moller_trumbore", "named_scene",
-    "SCENE_NAMES", "render", "render_views", "pixel_rays", "Rendering", "MAX_SUPERSAMPLE", "orbit_cameras",
-    "forward_cameras", "stereo_rig", "intrinsics", "DEFAULT_FOV_DEG", "Texture", "PHOTO_NAMES", "photo", "atlas",
-    "noise_texture", "shapes_texture", "wood_texture", "tinted",
-]
+__all__ = ["DEFAULT_FOV_DEG", "MAX_SUPERSAMPLE", "NEAR", "PHOTO_NAMES", "SCENE_NAMES", "Box", "MeshObject",
+           "Plane", "Rendering", "Scene", "SceneObject", "Sphere", "Texture", "atlas", "forward_cameras",
+           "intrinsics", "moller_trumbore", "named_scene", "noise_texture", "orbit_cameras", "photo",
+           "pixel_rays", "render", "render_views", "shapes_texture", "stereo_rig", "tinted", "wood_texture"]

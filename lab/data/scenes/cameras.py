@@ -29,8 +29,9 @@ DEFAULT_FOV_DEG = 60.0
 
 def intrinsics(*, width: int = 640, height: int = 480, fx: float | None = None, fy: float | None = None,
                cx: float | None = None, cy: float | None = None) -> np.ndarray:
-    """A ``(3, 3)`` camera matrix: ``fx`` defaults to a 60 degree horizontal field of view, ``fy`` to ``fx``,
-    the principal point to the image centre ``((width - 1) / 2, (height - 1) / 2)`` (pixel centres at integers)."""
+    """A ``(3, 3)`` camera matrix: ``fx`` defaults to a 60 degree horizontal field of view, ``fy`` to
+    ``fx``, the principal point to the image centre ``((width - 1) / 2, (height - 1) / 2)`` (pixel
+    centres at integers)."""
     width, height = _image_size(width, height)
     fx = width / (2.0 * np.tan(np.radians(DEFAULT_FOV_DEG) / 2.0)) if fx is None else _positive(fx, "fx")
     fy = fx if fy is None else _positive(fy, "fy")
@@ -79,7 +80,8 @@ def orbit_cameras(scene_or_center: Scene | np.ndarray | tuple | None = None, *, 
     steps = np.arange(num_views) / (num_views if np.isclose(abs(arc_deg), 360.0) or num_views == 1
                                     else num_views - 1)
     azimuth = np.radians(_finite(start_deg, "start_deg")) + arc * steps
-    eyes = centre + radius * (np.cos(azimuth)[:, None] * first + np.sin(azimuth)[:, None] * second) + elevation * up
+    eyes = (centre + radius * (np.cos(azimuth)[:, None] * first + np.sin(azimuth)[:, None] * second)
+            + elevation * up)
     target = centre if look_at_point is None else _point(look_at_point, "look_at_point")
     targets = np.broadcast_to(target, eyes.shape).copy()
     eyes, targets = _jittered(eyes, targets, jitter, seed)
@@ -89,9 +91,9 @@ def orbit_cameras(scene_or_center: Scene | np.ndarray | tuple | None = None, *, 
 
 def forward_cameras(*, num_views: int = 5, step: float = 0.1, scene: Scene | None = None,
                     start: np.ndarray | tuple | None = None, direction: np.ndarray | tuple | None = None,
-                    up: np.ndarray | tuple | None = None, turn_deg: float = 0.0, K: np.ndarray | None = None,
-                    fx: float | None = None, width: int = 640, height: int = 480, dist: np.ndarray | None = None,
-                    jitter: float = 0.0, seed: int = 0) -> Cameras:
+                    up: np.ndarray | tuple | None = None, turn_deg: float = 0.0,
+                    K: np.ndarray | None = None, fx: float | None = None, width: int = 640, height: int = 480,
+                    dist: np.ndarray | None = None, jitter: float = 0.0, seed: int = 0) -> Cameras:
     """Cameras moving forward: view ``i`` at ``start + i step direction``, looking along ``direction``
     turned by ``i turn_deg`` degrees about ``up`` (positive turns left, towards ``up x direction``).
 
@@ -128,7 +130,8 @@ def stereo_rig(*, baseline: float = 0.1, scene: Scene | None = None, eye: np.nda
                verge_deg: float = 0.0, K: np.ndarray | None = None, K_right: np.ndarray | None = None,
                fx: float | None = None, width: int = 640, height: int = 480, dist: np.ndarray | None = None,
                dist_right: np.ndarray | None = None) -> Cameras:
-    """Two cameras: the left at ``eye`` looking at ``target``, the right ``baseline`` metres along the left's x axis.
+    """Two cameras: the left at ``eye`` looking at ``target``, the right ``baseline`` metres along the
+    left's x axis.
 
     With ``verge_deg = 0`` both share the rotation (a rectified pair: ``x_right = x_left - f B / Z``
     for equal ``K``). A positive ``verge_deg`` toes both in by half of it each, about their own y
@@ -176,7 +179,8 @@ def _cameras(R: np.ndarray, t: np.ndarray, *, K: np.ndarray | None, fx: float | 
                    dist=np.broadcast_to(d, (views, 5)).copy() if np.any(d) else None)
 
 
-def _jittered(eyes: np.ndarray, targets: np.ndarray, jitter: float, seed: int) -> tuple[np.ndarray, np.ndarray]:
+def _jittered(eyes: np.ndarray, targets: np.ndarray, jitter: float,
+              seed: int) -> tuple[np.ndarray, np.ndarray]:
     jitter = _finite(jitter, "jitter")
     if jitter < 0:
         raise InvalidValue("jitter", f"must be non-negative, got {jitter!r}")
@@ -228,7 +232,7 @@ def _point(value: object, name: str) -> np.ndarray:
 
 
 def _finite(value: object, name: str) -> float:
-    if isinstance(value, bool) or not isinstance(value, Real) or not np.isfinite(value):
+    if isinstance(value, bool) or not isinstance(value, Real) or not np.isfinite(np.asarray(value)):
         raise InvalidValue(name, f"must be a finite number, got {value!r}")
     return float(value)
 
@@ -247,11 +251,14 @@ def _count(value: object, name: str) -> int:
 
 
 def _image_size(width: object, height: object) -> tuple[int, int]:
-    for name, value in (("width", width), ("height", height)):
-        if isinstance(value, bool) or not isinstance(value, Integral) or value < 2:
-            raise InvalidValue(name, f"the image {name} is a whole number of pixels (at least 2), got {value!r}; "
-                                     "an orbit's camera height above its centre is `elevation`")
-    return int(width), int(height)
+    return _pixels(width, "width"), _pixels(height, "height")
 
 
-__all__ = ["DEFAULT_FOV_DEG", "intrinsics", "orbit_cameras", "forward_cameras", "stereo_rig"]
+def _pixels(value: object, name: str) -> int:
+    if isinstance(value, bool) or not isinstance(value, Integral) or value < 2:
+        raise InvalidValue(name, f"the image {name} is a whole number of pixels (at least 2), got {value!r}; "
+                                 "an orbit's camera height above its centre is `elevation`")
+    return int(value)
+
+
+__all__ = ["DEFAULT_FOV_DEG", "forward_cameras", "intrinsics", "orbit_cameras", "stereo_rig"]

@@ -27,7 +27,7 @@ from functools import lru_cache
 import numpy as np
 
 from lab.core.errors import InvalidValue, UnknownName
-from lab.data.scenes.objects import Box, MeshObject, Plane, Scene, Sphere
+from lab.data.scenes.objects import Box, MeshObject, Plane, Scene, SceneObject, Sphere
 from lab.data.scenes.textures import (Texture, atlas, fit, noise_texture, photo, shapes_texture, tinted,
                                       wood_texture)
 from lab.geometry.rotations import rotvec_to_matrix
@@ -137,29 +137,32 @@ def _room(rng: np.random.Generator, seed: int) -> Scene:
     shapes = shapes_texture(1024, 384, seed=s + 3, count=500)
     grass = _modulated(fit(tinted(photo("grass"), (0.45, 0.7, 0.35), contrast=1.3), 1024, 384), s + 4)
     grass = _paste_posters(grass, ["chelsea", "hubble_deep_field"], rng, fill=0.45)
-    panels = _paste_posters(wood_texture(1024, 384, seed=s + 5), ["immunohistochemistry", "cat"], rng, fill=0.4)
-    ceiling = noise_texture(512, 512, seed=s + 6, saturation=0.2, colors=np.array([[0.6, 0.6, 0.58],
-                                                                                   [0.95, 0.95, 0.9]]))
-    objects: list = [
+    panels = _paste_posters(wood_texture(1024, 384, seed=s + 5), ["immunohistochemistry", "cat"], rng,
+                            fill=0.4)
+    ceiling = noise_texture(512, 512, seed=s + 6, saturation=0.2,
+                            colors=np.array([[0.6, 0.6, 0.58], [0.95, 0.95, 0.9]]))
+    objects: list[SceneObject] = [
         Plane((-half, -half, 0.0), (1, 0, 0), (0, 1, 0), (2 * half, 2 * half), texture=floor, name="floor"),
         Plane((-half, half, tall), (1, 0, 0), _DOWN, (2 * half, tall), texture=brick, name="north wall"),
         Plane((half, half, tall), (0, -1, 0), _DOWN, (2 * half, tall), texture=grass, name="east wall"),
         Plane((half, -half, tall), (-1, 0, 0), _DOWN, (2 * half, tall), texture=shapes, name="south wall"),
         Plane((-half, -half, tall), (0, 1, 0), _DOWN, (2 * half, tall), texture=panels, name="west wall"),
-        Plane((-half, -half, tall), (1, 0, 0), (0, 1, 0), (2 * half, 2 * half), texture=ceiling, name="ceiling"),
+        Plane((-half, -half, tall), (1, 0, 0), (0, 1, 0), (2 * half, 2 * half), texture=ceiling,
+              name="ceiling"),
     ]
     jitter = lambda: rng.uniform(-0.15, 0.15, 3) * (1, 1, 0)  # noqa: E731
     crate = Texture(atlas([photo("astronaut"), photo("coffee"), photo("chelsea"), photo("rocket"),
                            shapes_texture(256, 256, seed=s + 7, count=60), photo("coins")]), "crate")
-    tall_box = Texture(atlas([shapes_texture(256, 256, seed=s + 8 + k, count=80) for k in range(6)]), "tall box")
+    tall_box = Texture(atlas([shapes_texture(256, 256, seed=s + 8 + k, count=80) for k in range(6)]),
+                       "tall box")
     small_box = Texture(atlas([wood_texture(256, 256, seed=s + 20 + k) for k in range(6)]), "small box")
     objects += [
         Box(np.array([1.3, 1.0, 0.4]) + jitter(), (0.8, 0.8, 0.8), _yaw(25 + rng.uniform(-20, 20)), crate,
             name="crate"),
-        Box(np.array([-1.6, 1.2, 0.7]) + jitter(), (0.5, 0.6, 1.4), _yaw(-15 + rng.uniform(-20, 20)), tall_box,
-            name="tall box"),
-        Box(np.array([0.4, -1.3, 0.2]) + jitter(), (0.5, 0.35, 0.4), _yaw(40 + rng.uniform(-20, 20)), small_box,
-            name="small box"),
+        Box(np.array([-1.6, 1.2, 0.7]) + jitter(), (0.5, 0.6, 1.4), _yaw(-15 + rng.uniform(-20, 20)),
+            tall_box, name="tall box"),
+        Box(np.array([0.4, -1.3, 0.2]) + jitter(), (0.5, 0.35, 0.4), _yaw(40 + rng.uniform(-20, 20)),
+            small_box, name="small box"),
         Sphere(np.array([-1.0, -0.5, 0.45]) + jitter(), 0.45, fit(photo("hubble_deep_field"), 1024, 512),
                rotation=_yaw(rng.uniform(0, 360)), name="globe"),
         Sphere(np.array([1.7, -0.8, 0.3]) + jitter(), 0.3, shapes_texture(512, 256, seed=s + 9, count=150),
@@ -180,7 +183,7 @@ def _table(rng: np.random.Generator, seed: int) -> Scene:
         + 0.5 * shapes_texture(1024, 1024, seed=s + 10, count=700, max_size=0.03, opacity=0.6)
     wall = _paste_posters(_modulated(shapes_texture(1024, 512, seed=s + 11, count=300), s + 12),
                           ["astronaut", "rocket", "chelsea"], rng, fill=0.6)
-    objects: list = [
+    objects: list[SceneObject] = [
         Plane((-3.0, -3.0, 0.0), (1, 0, 0), (0, 1, 0), (6.0, 6.0), texture=floor, name="floor"),
         Plane((-3.0, 2.0, 2.0), (1, 0, 0), _DOWN, (6.0, 2.0), texture=wall, name="wall"),
         Box((0.0, 0.0, top_z - thickness / 2), (1.6, 1.0, thickness), texture=leg_wood, name="table body"),
@@ -193,11 +196,13 @@ def _table(rng: np.random.Generator, seed: int) -> Scene:
     cereal = Texture(atlas([photo("rocket"), photo("coffee"), photo("astronaut"), photo("chelsea"),
                             shapes_texture(256, 256, seed=s + 2, count=60), photo("coins")]), "cereal box")
     x, y = place(-0.45, 0.15)
-    objects.append(Box((x, y, top_z + 0.16), (0.3, 0.1, 0.32), _yaw(rng.uniform(-30, 10)), cereal, name="cereal box"))
+    objects.append(Box((x, y, top_z + 0.16), (0.3, 0.1, 0.32), _yaw(rng.uniform(-30, 10)), cereal,
+                       name="cereal box"))
     x, y = place(0.05, -0.2)
     objects.append(Sphere((x, y, top_z + 0.11), 0.11, shapes_texture(512, 256, seed=s + 3, count=200),
                           rotation=_yaw(rng.uniform(0, 360)), name="ball"))
-    cube = Texture(atlas([shapes_texture(128, 128, seed=s + 30 + k, count=25) for k in range(6)], cell=128), "cube")
+    cube = Texture(atlas([shapes_texture(128, 128, seed=s + 30 + k, count=25) for k in range(6)], cell=128),
+                   "cube")
     x, y = place(-0.1, 0.3)
     objects.append(Box((x, y, top_z + 0.06), (0.12, 0.12, 0.12), _yaw(rng.uniform(0, 90)), cube, name="cube"))
     can, can_uv = _textured_cylinder(0.05, 0.17)
@@ -210,8 +215,8 @@ def _table(rng: np.random.Generator, seed: int) -> Scene:
     ring.apply_transform(trimesh.transformations.translation_matrix((x, y, top_z + 0.03)))
     colours = noise_texture(64, 64, seed=s + 4, saturation=1.0)
     lookup = np.clip(((ring.vertices[:, :2] - (x, y)) / 0.25 + 0.5) * 63, 0, 63).astype(int)
-    ring.visual = trimesh.visual.ColorVisuals(ring, vertex_colors=np.round(colours[lookup[:, 1], lookup[:, 0]] * 255)
-                                              .astype(np.uint8))
+    vertex_colours = np.round(colours[lookup[:, 1], lookup[:, 0]] * 255).astype(np.uint8)
+    ring.visual = trimesh.visual.ColorVisuals(ring, vertex_colors=vertex_colours)
     objects.append(MeshObject(ring, name="ring"))
     return Scene(tuple(objects), background=(0.55, 0.7, 0.9), center=(0.0, 0.0, 0.85), home=(0.0, -2.0, 1.6),
                  name="table")
@@ -222,13 +227,14 @@ def _facade(rng: np.random.Generator, seed: int) -> Scene:
     width, height = 14.0, 9.0
     brick = _tiled(tinted(_bricks(), (0.95, 0.7, 0.55), contrast=1.4), 4, 3)
     wall = _modulated(fit(brick, 1400, 900), s + 1, strength=0.3)
-    wall = shapes_texture(1400, 900, seed=s + 2, base=wall, count=3000, min_size=0.003, max_size=0.015, opacity=0.6)
+    wall = shapes_texture(1400, 900, seed=s + 2, base=wall, count=3000, min_size=0.003, max_size=0.015,
+                          opacity=0.6)
     names = ["astronaut", "coffee", "chelsea", "rocket", "cat", "hubble_deep_field", "immunohistochemistry",
              "coins", "camera", "moon", "grass", "gravel"]
     order = rng.permutation(len(names))
     windows = [names[k] for k in order]
     facade = np.array(wall)
-    sills = []
+    sills: list[SceneObject] = []
     columns, rows = 4, 3
     for k, name in enumerate(windows):
         r, c = divmod(k, columns)
@@ -241,7 +247,8 @@ def _facade(rng: np.random.Generator, seed: int) -> Scene:
         facade[y0:y0 + int(wh * 100), x0:x0 + int(ww * 100)] = fit(photo(name), int(ww * 100), int(wh * 100))
         sills.append(Box((cx, -0.04, top - wh - 0.05), (ww + 0.2, 0.08, 0.06), color=(0.85, 0.85, 0.8),
                          name=f"sill {k}"))
-    objects = [Plane((-width / 2, 0.0, height), (1, 0, 0), _DOWN, (width, height), texture=facade, name="facade")]
+    objects: list[SceneObject] = [Plane((-width / 2, 0.0, height), (1, 0, 0), _DOWN, (width, height),
+                                        texture=facade, name="facade")]
     return Scene(tuple(objects + sills), background=(0.55, 0.72, 0.95), light=(0.25, -0.8, 0.55),
                  center=(0.0, 0.0, 3.5), home=(0.0, -9.0, 1.7), name="facade")
 

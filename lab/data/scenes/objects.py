@@ -22,13 +22,18 @@ exact whatever precision the search used.
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
-from typing import NamedTuple
+from dataclasses import dataclass, field, fields
+from typing import TYPE_CHECKING, Any, NamedTuple, TypedDict, Unpack
 
 import numpy as np
+from numpy.typing import ArrayLike
 
 from lab.core.errors import InvalidValue
 from lab.data.scenes.textures import Texture, as_texture
+
+if TYPE_CHECKING:  # trimesh is imported when a mesh is made: scenes without one never load it
+    import trimesh
+    from _typeshed import DataclassInstance
 
 #: Hits closer than this (metres along the camera's z axis) are ignored: the near clipping plane.
 NEAR = 1e-3
@@ -36,7 +41,8 @@ NEAR = 1e-3
 #: Edges of a box whose corners are numbered by bits (x, y, z) = (k & 1, k >> 1 & 1, k >> 2 & 1).
 _BOX_EDGES = np.array([(0, 1), (2, 3), (4, 5), (6, 7), (0, 2), (1, 3), (4, 6), (5, 7), (0, 4), (1, 5), (2, 6),
                        (3, 7)])
-_BOX_SIGNS = np.array([[(k & 1) * 2 - 1, (k >> 1 & 1) * 2 - 1, (k >> 2 & 1) * 2 - 1] for k in range(8)], float)
+_BOX_SIGNS = np.array([[(k & 1) * 2 - 1, (k >> 1 & 1) * 2 - 1, (k >> 2 & 1) * 2 - 1] for k in range(8)],
+                      float)
 
 
 class Surface(NamedTuple):
@@ -97,10 +103,27 @@ def _readonly(array: np.ndarray) -> np.ndarray:
     return array
 
 
+def _uniform(color: tuple[float, float, float], shape: tuple[int, ...]) -> np.ndarray:
+    """``color`` at every point: a float32 broadcast of ``shape`` (the albedo of an untextured object)."""
+    return np.broadcast_to(np.asarray(color, dtype=np.float32), shape)
+
+
+def _floats(values: np.ndarray) -> tuple[float, ...]:
+    return tuple(float(v) for v in values)
+
+
+def _set_fields(instance: DataclassInstance, **values: object) -> None:
+    """Set every field of the frozen dataclass ``instance``, in field order (what a generated
+    ``__init__`` does; the scene objects write their own, which check and convert their inputs)."""
+    for f in fields(instance):
+        object.__setattr__(instance, f.name, values[f.name])
+
+
 # --- shared ray math ------------------------------------------------------------------------------------
 def slab(origin: np.ndarray, directions: np.ndarray, lower: np.ndarray,
          upper: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """The slab test (Kay and Kajiya 1986): entry and exit parameters ``(N,)`` of rays in an axis-aligned box.
+    """The slab test (Kay and Kajiya 1986): entry and exit parameters ``(N,)`` of rays in an
+    axis-aligned box.
 
     A ray misses when ``entry > exit`` or ``exit < NEAR``. Axis-parallel rays give infinite slab
     bounds, which the NaN-ignoring reductions (``np.fmax``/``np.fmin``) handle.
@@ -117,7 +140,8 @@ def slab(origin: np.ndarray, directions: np.ndarray, lower: np.ndarray,
 
 
 def _first_beyond_near(entry: np.ndarray, exit_: np.ndarray, hit: np.ndarray) -> np.ndarray:
-    """The nearest parameter beyond NEAR of an interval ``[entry, exit]`` (the exit when the origin is inside)."""
+    """The nearest parameter beyond NEAR of an interval ``[entry, exit]`` (the exit when the origin is
+    inside)."""
     s = np.where(entry >= NEAR, entry, exit_)
     return np.where(hit & (s >= NEAR), s, np.inf)
 
@@ -128,9 +152,19 @@ def _box_hull(center: np.ndarray, axes: np.ndarray, half: np.ndarray) -> tuple[n
 
 
 # --- planes -----------------------------------------------------------------------------------------------
-@dataclass(frozen=True, eq=False)
+class PlaneOptions(TypedDict, total=False):
+    """The keyword options of :class:`Plane` (for :meth:`Plane.centered`)."""
+
+    texture: Texture | np.ndarray | None
+    color: tuple[float, float, float]
+    repeat: tuple[float, float]
+    name: str
+
+
+@dataclass(frozen=True, eq=False, init=False)
 class Plane:
-    """A textured rectangle: the points ``origin + a u_axis + b v_axis``, ``0 <= a <= size[0]``, ``0 <= b <= size[1]``.
+    """A textured rectangle: the points ``origin + a u_axis + b v_axis``, ``0 <= a <= size[0]``,
+    ``0 <= b <= size[1]``.
 
     ``u_axis`` and ``v_axis`` are perpendicular directions (normalized here); the texture's
     ``(u, v) = (repeat[0] a / size[0], repeat[1] b / size[1])``, so texel row 0 lies along
@@ -138,31 +172,32 @@ class Plane:
     ``color``. Both sides are visible.
     """
 
+    # what the constructor stores (it takes any array-like vectors and an image for the texture)
     origin: np.ndarray
     u_axis: np.ndarray
     v_axis: np.ndarray
     size: tuple[float, float]
-    texture: Texture | np.ndarray | None = None
-    color: tuple[float, float, float] = (0.6, 0.6, 0.6)
-    repeat: tuple[float, float] = (1.0, 1.0)
-    name: str = "plane"
+    texture: Texture | None
+    color: tuple[float, float, float]
+    repeat: tuple[float, float]
+    name: str
 
-    def __post_init__(self) -> None:
-        u = _unit(self.u_axis, "u_axis")
-        v = _unit(self.v_axis, "v_axis")
+    def __init__(self, origin: ArrayLike, u_axis: ArrayLike, v_axis: ArrayLike, size: tuple[float, float],
+                 texture: Texture | np.ndarray | None = None,
+                 color: tuple[float, float, float] = (0.6, 0.6, 0.6),
+                 repeat: tuple[float, float] = (1.0, 1.0), name: str = "plane") -> None:
+        u = _unit(u_axis, "u_axis")
+        v = _unit(v_axis, "v_axis")
         if abs(float(u @ v)) > 1e-9:
             raise InvalidValue("v_axis", "the two axes of a plane must be perpendicular")
-        object.__setattr__(self, "origin", _readonly(_vector(self.origin, "origin")))
-        object.__setattr__(self, "u_axis", _readonly(u))
-        object.__setattr__(self, "v_axis", _readonly(v))
-        object.__setattr__(self, "size", tuple(float(s) for s in _positive(self.size, "size", 2)))
-        object.__setattr__(self, "repeat", tuple(float(s) for s in _positive(self.repeat, "repeat", 2)))
-        object.__setattr__(self, "texture", as_texture(self.texture))
-        object.__setattr__(self, "color", tuple(float(c) for c in _color(self.color)))
+        _set_fields(self, origin=_readonly(_vector(origin, "origin")), u_axis=_readonly(u),
+                    v_axis=_readonly(v), size=_floats(_positive(size, "size", 2)),
+                    repeat=_floats(_positive(repeat, "repeat", 2)), texture=as_texture(texture),
+                    color=_floats(_color(color)), name=name)
 
     @classmethod
     def centered(cls, center: object, u_axis: object, v_axis: object, size: tuple[float, float],
-                 **options: object) -> Plane:
+                 **options: Unpack[PlaneOptions]) -> Plane:
         """The rectangle of ``size`` centred on ``center`` (same options as the constructor)."""
         u, v = _unit(u_axis, "u_axis"), _unit(v_axis, "v_axis")
         w, h = _positive(size, "size", 2)
@@ -198,7 +233,7 @@ class Plane:
     def surface(self, points: np.ndarray, aux: np.ndarray) -> Surface:
         normal = np.broadcast_to(self.normal, points.shape)
         if self.texture is None:
-            return Surface(normal, color=np.broadcast_to(np.float32(self.color), points.shape))
+            return Surface(normal, color=_uniform(self.color, points.shape))
         relative = points - self.origin
         uv = np.stack([relative @ self.u_axis * (self.repeat[0] / self.size[0]),
                        relative @ self.v_axis * (self.repeat[1] / self.size[1])], axis=1)
@@ -209,7 +244,8 @@ class Plane:
 # --- boxes ------------------------------------------------------------------------------------------------
 @dataclass(frozen=True, eq=False)
 class Box:
-    """A textured box: ``center``, edge lengths ``size`` along its axes, ``rotation`` (box axes as columns).
+    """A textured box: ``center``, edge lengths ``size`` along its axes, ``rotation`` (box axes as
+    columns; None: the world axes).
 
     A world point is ``center + rotation @ p`` for ``p`` in ``[-size/2, size/2]``. The texture is
     an atlas of 3 x 2 cells (:func:`~lab.data.scenes.textures.atlas`), one per face in the order
@@ -217,19 +253,20 @@ class Box:
     box's z axis. Without a texture the box is ``color``.
     """
 
+    # what the constructor stores (it takes an array-like centre, no rotation, an image for the texture)
     center: np.ndarray
     size: tuple[float, float, float]
-    rotation: np.ndarray | None = None
-    texture: Texture | np.ndarray | None = None
-    color: tuple[float, float, float] = (0.6, 0.6, 0.6)
-    name: str = "box"
+    rotation: np.ndarray
+    texture: Texture | None
+    color: tuple[float, float, float]
+    name: str
 
-    def __post_init__(self) -> None:
-        object.__setattr__(self, "center", _readonly(_vector(self.center, "center")))
-        object.__setattr__(self, "size", tuple(float(s) for s in _positive(self.size, "size", 3)))
-        object.__setattr__(self, "rotation", _readonly(_rotation(self.rotation)))
-        object.__setattr__(self, "texture", as_texture(self.texture))
-        object.__setattr__(self, "color", tuple(float(c) for c in _color(self.color)))
+    def __init__(self, center: ArrayLike, size: tuple[float, float, float],
+                 rotation: np.ndarray | None = None, texture: Texture | np.ndarray | None = None,
+                 color: tuple[float, float, float] = (0.6, 0.6, 0.6), name: str = "box") -> None:
+        _set_fields(self, center=_readonly(_vector(center, "center")),
+                    size=_floats(_positive(size, "size", 3)), rotation=_readonly(_rotation(rotation)),
+                    texture=as_texture(texture), color=_floats(_color(color)), name=name)
 
     def hull(self) -> tuple[np.ndarray, np.ndarray]:
         return _box_hull(self.center, self.rotation, 0.5 * np.asarray(self.size))
@@ -250,8 +287,9 @@ class Box:
         face = 2 * axis + (~positive)
         normal = (self.rotation[:, axis] * np.where(positive, 1.0, -1.0)).T
         if self.texture is None:
-            return Surface(normal, color=np.broadcast_to(np.float32(self.color), points.shape))
-        # in-face coordinates in [0, 1]: side faces (x, y) run (other horizontal axis, down z); top/bottom (x, y)
+            return Surface(normal, color=_uniform(self.color, points.shape))
+        # in-face coordinates in [0, 1]: side faces (x, y) run (other horizontal axis, down z);
+        # top/bottom (x, y)
         first = np.where(axis == 0, 1, 0)
         second = np.where(axis == 2, 1, 2)
         rows = np.arange(len(points))
@@ -261,7 +299,8 @@ class Box:
         a = np.where(positive, a, 1.0 - a)
         column, row = face % 3, face // 3
         eps = 1e-4  # stay inside the cell, so that bilinear filtering does not bleed into its neighbour
-        uv = np.stack([(column + np.clip(a, eps, 1 - eps)) / 3.0, (row + np.clip(b, eps, 1 - eps)) / 2.0], axis=1)
+        uv = np.stack([(column + np.clip(a, eps, 1 - eps)) / 3.0, (row + np.clip(b, eps, 1 - eps)) / 2.0],
+                      axis=1)
         extent = np.array([half[first] * 2.0, half[second] * 2.0])  # (2, M) face edge lengths
         density = np.maximum(1.0 / (3.0 * extent[0]), 1.0 / (2.0 * extent[1]))
         return Surface(normal, uv, density)
@@ -277,27 +316,30 @@ class Sphere:
     tiled ``repeat`` times.
     """
 
+    # what the constructor stores (it takes an array-like centre, no rotation, an image for the texture)
     center: np.ndarray
     radius: float
-    texture: Texture | np.ndarray | None = None
-    color: tuple[float, float, float] = (0.6, 0.6, 0.6)
-    rotation: np.ndarray | None = None
-    repeat: tuple[float, float] = (1.0, 1.0)
-    name: str = "sphere"
+    texture: Texture | None
+    color: tuple[float, float, float]
+    rotation: np.ndarray
+    repeat: tuple[float, float]
+    name: str
 
-    def __post_init__(self) -> None:
-        object.__setattr__(self, "center", _readonly(_vector(self.center, "center")))
-        object.__setattr__(self, "radius", float(_positive(self.radius, "radius", 1)[0]))
-        object.__setattr__(self, "rotation", _readonly(_rotation(self.rotation)))
-        object.__setattr__(self, "repeat", tuple(float(s) for s in _positive(self.repeat, "repeat", 2)))
-        object.__setattr__(self, "texture", as_texture(self.texture))
-        object.__setattr__(self, "color", tuple(float(c) for c in _color(self.color)))
+    def __init__(self, center: ArrayLike, radius: float, texture: Texture | np.ndarray | None = None,
+                 color: tuple[float, float, float] = (0.6, 0.6, 0.6), rotation: np.ndarray | None = None,
+                 repeat: tuple[float, float] = (1.0, 1.0), name: str = "sphere") -> None:
+        checked = {"center": _readonly(_vector(center, "center")),  # checked in this order
+                   "radius": float(_positive(radius, "radius", 1)[0]),
+                   "rotation": _readonly(_rotation(rotation)),
+                   "repeat": _floats(_positive(repeat, "repeat", 2))}
+        _set_fields(self, texture=as_texture(texture), color=_floats(_color(color)), name=name, **checked)
 
     def hull(self) -> tuple[np.ndarray, np.ndarray]:
         return _box_hull(self.center, np.eye(3), np.full(3, self.radius))
 
     def intersect(self, origin: np.ndarray, directions: np.ndarray) -> tuple[np.ndarray, None]:
-        """Ray-sphere: the smaller root of ``|o + s d - c|^2 = r^2`` beyond NEAR (the larger one from inside).
+        """Ray-sphere: the smaller root of ``|o + s d - c|^2 = r^2`` beyond NEAR (the larger one from
+        inside).
 
         Solved as ``s = c' / q`` and ``q / a`` with ``q = -(b' + sign(b') sqrt(disc))`` (Numerical
         Recipes, section 5.6), which loses no digits to cancellation.
@@ -317,7 +359,7 @@ class Sphere:
     def surface(self, points: np.ndarray, aux: np.ndarray) -> Surface:
         normal = (points - self.center) / self.radius
         if self.texture is None:
-            return Surface(normal, color=np.broadcast_to(np.float32(self.color), points.shape))
+            return Surface(normal, color=_uniform(self.color, points.shape))
         local = normal @ self.rotation
         u = np.arctan2(local[:, 1], local[:, 0]) / (2 * np.pi) + 0.5
         colatitude = np.arccos(np.clip(local[:, 2], -1.0, 1.0))
@@ -330,7 +372,8 @@ class Sphere:
 # --- triangle meshes --------------------------------------------------------------------------------------
 def moller_trumbore(origin: np.ndarray, directions: np.ndarray, triangles: np.ndarray, *,
                     chunk_elements: int = 2_000_000) -> tuple[np.ndarray, np.ndarray]:
-    """Nearest hit of rays ``origin + s d`` (``d`` ``(N, 3)``) with triangles ``(F, 3, 3)``: ``s``, face ``(N,)``.
+    """Nearest hit of rays ``origin + s d`` (``d`` ``(N, 3)``) with triangles ``(F, 3, 3)``: ``s``,
+    face ``(N,)``.
 
     The Moeller-Trumbore test (1997) for every ray against every triangle, in chunks of about
     ``chunk_elements`` ray-triangle pairs; both sides of a triangle count, misses are ``inf`` / -1.
@@ -427,7 +470,8 @@ def binned_moller_trumbore(origin: np.ndarray, directions: np.ndarray, triangles
 
 
 def _embree_available() -> bool:
-    """Whether Embree can be used: ``embreex`` imports (``trimesh.ray`` hides the failure behind a wrapper)."""
+    """Whether Embree can be used: ``embreex`` imports (``trimesh.ray`` hides the failure behind a
+    wrapper)."""
     try:
         import embreex  # noqa: F401
         from trimesh.ray.ray_pyembree import RayMeshIntersector  # noqa: F401
@@ -436,9 +480,10 @@ def _embree_available() -> bool:
     return True
 
 
-@dataclass(frozen=True, eq=False)
+@dataclass(frozen=True, eq=False, init=False)
 class MeshObject:
-    """A triangle mesh (``trimesh.Trimesh``, world coordinates) with a texture, vertex colours or one colour.
+    """A triangle mesh (``trimesh.Trimesh``, world coordinates) with a texture, vertex colours or one
+    colour.
 
     Appearance, first that applies: ``texture`` with per-vertex ``uv`` ``(V, 2)`` (trimesh's
     convention, v = 0 at the bottom of the image; taken from ``mesh.visual`` when it has a
@@ -451,30 +496,32 @@ class MeshObject:
     :func:`binned_moller_trumbore`), "embree" or "numpy".
     """
 
-    mesh: object
-    texture: Texture | np.ndarray | None = None
-    uv: np.ndarray | None = None
-    texture_scale: float = 1.0
-    color: tuple[float, float, float] = (0.6, 0.6, 0.6)
-    intersector: str = "auto"
-    name: str = "mesh"
-    triangles: np.ndarray = field(init=False, repr=False)
-    _cache: dict = field(init=False, repr=False, default_factory=dict)
+    # what the constructor stores (it takes an image for the texture, array-like uv)
+    mesh: trimesh.Trimesh
+    texture: Texture | None
+    uv: np.ndarray | None
+    texture_scale: float
+    color: tuple[float, float, float]
+    intersector: str
+    name: str
+    triangles: np.ndarray = field(repr=False)
+    _cache: dict = field(repr=False)
 
-    def __post_init__(self) -> None:
+    def __init__(self, mesh: trimesh.Trimesh, texture: Texture | np.ndarray | None = None,
+                 uv: ArrayLike | None = None, texture_scale: float = 1.0,
+                 color: tuple[float, float, float] = (0.6, 0.6, 0.6), intersector: str = "auto",
+                 name: str = "mesh") -> None:
         import trimesh
 
-        mesh = self.mesh
         if not isinstance(mesh, trimesh.Trimesh):
             raise InvalidValue("mesh", f"expected a trimesh.Trimesh, got {type(mesh).__name__}")
         if len(mesh.faces) == 0:
             raise InvalidValue("mesh", "the mesh has no faces")
-        if self.intersector not in ("auto", "embree", "numpy"):
-            raise InvalidValue("intersector", f"must be auto, embree or numpy, got {self.intersector!r}")
-        if self.intersector == "embree" and not _embree_available():
+        if intersector not in ("auto", "embree", "numpy"):
+            raise InvalidValue("intersector", f"must be auto, embree or numpy, got {intersector!r}")
+        if intersector == "embree" and not _embree_available():
             raise InvalidValue("intersector", "Embree needs the embreex package, which is not installed")
-        texture, uv = self.texture, self.uv
-        visual = getattr(mesh, "visual", None)
+        visual: Any = getattr(mesh, "visual", None)  # ColorVisuals or TextureVisuals: see .kind
         if getattr(visual, "kind", None) == "texture" and getattr(visual, "uv", None) is not None:
             if uv is None:
                 uv = visual.uv
@@ -482,18 +529,18 @@ class MeshObject:
                 material = visual.material
                 image = getattr(material, "image", None) or getattr(material, "baseColorTexture", None)
                 texture = None if image is None else np.asarray(image)
-        texture = as_texture(texture)
+        stored_texture = as_texture(texture)
+        stored_uv = None
         if uv is not None:
-            uv = np.asarray(uv, dtype=np.float64)
-            if uv.shape != (len(mesh.vertices), 2) or not np.all(np.isfinite(uv)):
+            uv_array = np.asarray(uv, dtype=np.float64)
+            if uv_array.shape != (len(mesh.vertices), 2) or not np.all(np.isfinite(uv_array)):
                 raise InvalidValue("uv", f"expected ({len(mesh.vertices)}, 2) finite texture coordinates, "
-                                         f"got shape {uv.shape}")
-            uv = _readonly(uv)
-        object.__setattr__(self, "texture", texture)
-        object.__setattr__(self, "uv", uv)
-        object.__setattr__(self, "texture_scale", float(_positive(self.texture_scale, "texture_scale", 1)[0]))
-        object.__setattr__(self, "color", tuple(float(c) for c in _color(self.color)))
-        object.__setattr__(self, "triangles", _readonly(mesh.vertices[mesh.faces]))
+                                         f"got shape {uv_array.shape}")
+            stored_uv = _readonly(uv_array)
+        _set_fields(self, mesh=mesh, texture=stored_texture, uv=stored_uv,
+                    texture_scale=float(_positive(texture_scale, "texture_scale", 1)[0]),
+                    color=_floats(_color(color)), intersector=intersector, name=name,
+                    triangles=_readonly(mesh.vertices[mesh.faces]), _cache={})
 
     def __getstate__(self) -> dict:
         state = dict(self.__dict__)
@@ -511,7 +558,7 @@ class MeshObject:
             cache = self._cache
             cache["face_normals"] = np.asarray(mesh.face_normals, dtype=np.float64)
             cache["normals"] = np.asarray(mesh.vertex_normals, dtype=np.float64)[mesh.faces]  # (F, 3, 3)
-            visual = getattr(mesh, "visual", None)
+            visual: Any = getattr(mesh, "visual", None)  # ColorVisuals or TextureVisuals: see .kind
             kind = getattr(visual, "kind", None)
             if self.texture is None and kind == "vertex":
                 cache["colors"] = (np.asarray(visual.vertex_colors)[:, :3] / 255.0)[mesh.faces]
@@ -544,7 +591,8 @@ class MeshObject:
         return np.asarray(self._cache["embree"].intersects_first(origins, directions), dtype=np.int64)
 
     def intersect(self, origin: np.ndarray, directions: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """Slab test on the bounding box, then the triangle search; ``s`` recomputed in float64 from the face plane."""
+        """Slab test on the bounding box, then the triangle search; ``s`` recomputed in float64 from the
+        face plane."""
         s = np.full(len(directions), np.inf)
         faces = np.full(len(directions), -1, dtype=np.int64)
         lower, upper = self.mesh.bounds
@@ -589,11 +637,12 @@ class MeshObject:
         if "colors" in tables:
             color = np.einsum("mk,mkj->mj", weights, tables["colors"][aux]).astype(np.float32)
             return Surface(normal, color=color)
-        return Surface(normal, color=np.broadcast_to(np.float32(self.color), points.shape))
+        return Surface(normal, color=_uniform(self.color, points.shape))
 
 
 def _barycentric(points: np.ndarray, triangles: np.ndarray) -> np.ndarray:
-    """Barycentric weights ``(M, 3)`` of points ``(M, 3)`` in triangles ``(M, 3, 3)`` (clipped to the triangle)."""
+    """Barycentric weights ``(M, 3)`` of points ``(M, 3)`` in triangles ``(M, 3, 3)`` (clipped to the
+    triangle)."""
     a = triangles[:, 0]
     e1, e2, p = triangles[:, 1] - a, triangles[:, 2] - a, points - a
     d11 = np.einsum("ij,ij->i", e1, e1)
@@ -637,8 +686,8 @@ class Scene:
         objects = tuple(self.objects)
         for k, item in enumerate(objects):
             if not isinstance(item, (Plane, Box, Sphere, MeshObject)):
-                raise InvalidValue("objects", f"object {k} is a {type(item).__name__}, not a Plane, Box, Sphere "
-                                              "or MeshObject")
+                raise InvalidValue("objects", f"object {k} is a {type(item).__name__}, not a Plane, Box, "
+                                              "Sphere or MeshObject")
         object.__setattr__(self, "objects", objects)
         object.__setattr__(self, "background", tuple(float(c) for c in _color(self.background, "background")))
         if self.light is not None:
@@ -659,5 +708,5 @@ class Scene:
         return corners.min(axis=0), corners.max(axis=0)
 
 
-__all__ = ["NEAR", "Surface", "slab", "moller_trumbore", "Plane", "Box", "Sphere", "MeshObject", "SceneObject",
-           "binned_moller_trumbore", "Scene"]
+__all__ = ["NEAR", "Box", "MeshObject", "Plane", "Scene", "SceneObject", "Sphere", "Surface",
+           "binned_moller_trumbore", "moller_trumbore", "slab"]

@@ -108,8 +108,8 @@ def _cached_grid(K_bytes: bytes, dist_bytes: bytes, width: int, height: int, sup
     if np.any(dist):
         residual = np.abs(distort(normalized, dist) - distorted).max()
         if not np.all(np.isfinite(normalized)) or residual > 1e-9:
-            raise InvalidValue("dist", "this lens distortion folds over inside the image (the model cannot be "
-                                       "inverted there); use smaller distortion coefficients")
+            raise InvalidValue("dist", "this lens distortion folds over inside the image (the model cannot "
+                                       "be inverted there); use smaller distortion coefficients")
     x = np.ascontiguousarray(normalized[:, 0])
     y = np.ascontiguousarray(normalized[:, 1])
     first = starts[:-1]
@@ -128,7 +128,8 @@ def _ray_grid(K: np.ndarray, dist: np.ndarray, width: int, height: int, supersam
 
 def _normalized_extent(corners: np.ndarray, edges: np.ndarray, R: np.ndarray,
                        t: np.ndarray) -> tuple[float, float, float, float] | None:
-    """Bounds of the normalized coordinates of a convex hull's part in front of the near plane (None: all behind).
+    """Bounds of the normalized coordinates of a convex hull's part in front of the near plane
+    (None: all behind).
 
     The hull is clipped by the plane Z = NEAR: its vertices with Z >= NEAR and the crossings of its
     edges with that plane are the clipped polytope's candidate vertices.
@@ -153,7 +154,8 @@ def _normalized_extent(corners: np.ndarray, edges: np.ndarray, R: np.ndarray,
 
 def _cast(scene: Scene, R: np.ndarray, t: np.ndarray, grid: _RayGrid, *,
           sample_angle: float | None) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
-    """Depth ``(N,)``, object index ``(N,)`` and, when ``sample_angle`` is given, colour ``(N, 3)`` of every sample.
+    """Depth ``(N,)``, object index ``(N,)`` and, when ``sample_angle`` is given, colour ``(N, 3)`` of
+    every sample.
 
     Samples are processed a few tiles at a time (so that temporaries stay in the CPU cache); in
     each chunk every object whose projected hull overlaps a tile is intersected with that tile's
@@ -164,7 +166,7 @@ def _cast(scene: Scene, R: np.ndarray, t: np.ndarray, grid: _RayGrid, *,
     depth = np.full(n, np.inf)
     ids = np.full(n, -1, dtype=np.int16)
     colour = None if sample_angle is None else np.empty((n, 3), dtype=np.float32)
-    overlaps = []
+    overlaps: list[np.ndarray | None] = []  # per object: the tiles its hull covers
     for item in scene.objects:
         extent = _normalized_extent(*item.hull(), R, t)
         overlaps.append(None if extent is None else grid.overlapping(extent))
@@ -177,10 +179,10 @@ def _cast(scene: Scene, R: np.ndarray, t: np.ndarray, grid: _RayGrid, *,
         chunk_depth = np.full(hi - lo, np.inf)
         chunk_ids = np.full(hi - lo, -1, dtype=np.int16)
         chunk_aux = np.full(hi - lo, -1, dtype=np.int64)
-        for k, item in enumerate(scene.objects):
-            if overlaps[k] is None:
+        for k, (item, overlap) in enumerate(zip(scene.objects, overlaps, strict=True)):
+            if overlap is None:
                 continue
-            inside = overlaps[k][first:last]
+            inside = overlap[first:last]
             if not inside.any():
                 continue
             rows = None if inside.all() else np.flatnonzero(np.repeat(inside, sizes[first:last]))
@@ -193,7 +195,7 @@ def _cast(scene: Scene, R: np.ndarray, t: np.ndarray, grid: _RayGrid, *,
                 chunk_aux[chosen] = face[closer]
         depth[lo:hi] = chunk_depth
         ids[lo:hi] = chunk_ids
-        if colour is not None:
+        if colour is not None and sample_angle is not None:  # colour exists when sample_angle is given
             colour[lo:hi] = _shade(scene, origin, directions, chunk_depth, chunk_ids, chunk_aux, sample_angle)
     return depth, ids, colour
 
@@ -206,7 +208,7 @@ def _shade(scene: Scene, origin: np.ndarray, directions: np.ndarray, depth: np.n
     neighbouring samples) divided by the cosine of the incidence angle (at most 1 / 0.2).
     """
     colour = np.empty((len(depth), 3), dtype=np.float32)
-    colour[:] = np.float32(scene.background)
+    colour[:] = np.asarray(scene.background, dtype=np.float32)
     order = np.argsort(ids, kind="stable")
     starts = np.searchsorted(ids[order], np.arange(-1, len(scene.objects) + 1))
     light = None if scene.light is None else np.asarray(scene.light)
@@ -225,6 +227,8 @@ def _shade(scene: Scene, origin: np.ndarray, directions: np.ndarray, depth: np.n
             length = np.sqrt(np.einsum("ij,ij->i", d, d))
             cosine = np.abs(facing) / length
             footprint = depth[rows] * length * sample_angle / np.maximum(cosine, 0.2) * surface.density
+            # a surface without a colour is textured: the object has a texture and gave uv
+            assert item.texture is not None and surface.uv is not None
             albedo = item.texture.sample(surface.uv, footprint)
         if light is not None:
             towards_light = np.copysign(normal @ light, -facing)  # with the normal turned to the camera
@@ -241,15 +245,18 @@ def _check(scene: object, cameras: object, index: object, supersample: object) -
         raise InvalidValue("cameras", f"expected lab.core.Cameras, got {type(cameras).__name__}")
     if isinstance(supersample, bool) or not isinstance(supersample, (int, np.integer)) \
             or not 1 <= supersample <= MAX_SUPERSAMPLE:
-        raise InvalidValue("supersample", f"must be an integer from 1 to {MAX_SUPERSAMPLE}, got {supersample!r}")
-    if isinstance(index, bool) or not isinstance(index, (int, np.integer)) or not -len(cameras) <= index < len(cameras):
-        raise InvalidValue("index", f"camera index {index!r} is out of range: there are {len(cameras)} cameras "
-                                    f"(0 to {len(cameras) - 1})")
+        raise InvalidValue("supersample", f"must be an integer from 1 to {MAX_SUPERSAMPLE}, "
+                                          f"got {supersample!r}")
+    if isinstance(index, bool) or not isinstance(index, (int, np.integer)) \
+            or not -len(cameras) <= index < len(cameras):
+        raise InvalidValue("index", f"camera index {index!r} is out of range: there are {len(cameras)} "
+                                    f"cameras (0 to {len(cameras) - 1})")
     return int(index) % len(cameras)
 
 
 def pixel_rays(cameras: Cameras, index: int = 0) -> tuple[np.ndarray, np.ndarray]:
-    """The ray through every pixel centre of camera ``index``: origin ``(3,)`` and world directions ``(H, W, 3)``.
+    """The ray through every pixel centre of camera ``index``: origin ``(3,)`` and world directions
+    ``(H, W, 3)``.
 
     Directions are ``R^T (x, y, 1)`` for the undistorted normalized coordinates ``(x, y)`` of the
     pixel, so ``origin + Z * direction`` is the point at depth Z seen through that pixel.
@@ -282,10 +289,11 @@ def render(scene: Scene, cameras: Cameras, index: int = 0, *, supersample: int =
     sample_angle = 1.0 / (np.sqrt(abs(K[0, 0] * K[1, 1])) * supersample)
     depth_sorted, ids_sorted, colour_sorted = _cast(scene, R, t, centres,
                                                     sample_angle=sample_angle if supersample == 1 else None)
-    depth = np.empty(width * height)
+    depth: np.ndarray = np.empty(width * height)
     ids = np.empty(width * height, dtype=np.int16)
     depth[centres.order] = depth_sorted
     ids[centres.order] = ids_sorted
+    colour: np.ndarray
     if supersample == 1:
         colour = np.empty((width * height, 3), dtype=np.float32)
         colour[centres.order] = colour_sorted
@@ -307,4 +315,4 @@ def render_views(scene: Scene, cameras: Cameras, *, supersample: int = 2) -> tup
     return tuple(render(scene, cameras, index, supersample=supersample) for index in range(len(cameras)))
 
 
-__all__ = ["TILE", "CHUNK_TILES", "MAX_SUPERSAMPLE", "Rendering", "render", "render_views", "pixel_rays"]
+__all__ = ["CHUNK_TILES", "MAX_SUPERSAMPLE", "TILE", "Rendering", "pixel_rays", "render", "render_views"]

@@ -21,7 +21,7 @@ so that SIFT finds thousands of distinctive features on a view.
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from functools import lru_cache
+from functools import cache
 
 import cv2
 import numpy as np
@@ -83,7 +83,8 @@ class Texture:
         return out
 
     def _bilinear(self, index: int, uv: np.ndarray) -> np.ndarray:
-        """Bilinear lookup in mip level ``index`` at ``uv`` ``(N, 2)`` in [0, 1): ``cv2.remap`` with wrap-around."""
+        """Bilinear lookup in mip level ``index`` at ``uv`` ``(N, 2)`` in [0, 1): ``cv2.remap`` with
+        wrap-around."""
         level = self.levels[index]
         h, w = level.shape[:2]
         n = len(uv)
@@ -100,7 +101,8 @@ class Texture:
 
 
 def as_rgb(image: object, name: str) -> np.ndarray:
-    """An image as contiguous ``(h, w, 3)`` float32 in [0, 1]: uint8 is scaled, grey replicated, alpha dropped."""
+    """An image as contiguous ``(h, w, 3)`` float32 in [0, 1]: uint8 is scaled, grey replicated, alpha
+    dropped."""
     array = np.asarray(image)
     if array.dtype == np.bool_:
         array = array.astype(np.float32)
@@ -138,7 +140,7 @@ def photo(name: str) -> np.ndarray:
     return _decoded_photo(name)
 
 
-@lru_cache(maxsize=None)
+@cache
 def _decoded_photo(name: str) -> np.ndarray:
     import skimage.data
 
@@ -148,17 +150,19 @@ def _decoded_photo(name: str) -> np.ndarray:
 
 
 def fit(image: np.ndarray, width: int, height: int) -> np.ndarray:
-    """Crop ``image`` to the aspect ratio ``width : height`` (centred), then resize it to that size (``INTER_AREA``)."""
+    """Crop ``image`` to the aspect ratio ``width : height`` (centred), then resize it to that size
+    (``INTER_AREA``)."""
     h, w = image.shape[:2]
     scale = min(w / width, h / height)
-    cw, ch = max(1, int(round(width * scale))), max(1, int(round(height * scale)))
+    cw, ch = max(1, round(width * scale)), max(1, round(height * scale))
     x0, y0 = (w - cw) // 2, (h - ch) // 2
     return cv2.resize(np.ascontiguousarray(image[y0:y0 + ch, x0:x0 + cw]), (width, height),
                       interpolation=cv2.INTER_AREA)
 
 
 def tinted(grey: np.ndarray, color: tuple[float, float, float], *, contrast: float = 1.0) -> np.ndarray:
-    """A grey image ``(h, w)`` (or the grey of an RGB one) coloured: ``color * (1 + 2 contrast (g - mean(g)))``."""
+    """A grey image ``(h, w)`` (or the grey of an RGB one) coloured:
+    ``color * (1 + 2 contrast (g - mean(g)))``."""
     g = np.asarray(grey, dtype=np.float32)
     if g.ndim == 3:
         g = g.mean(axis=2)
@@ -192,15 +196,18 @@ def noise_texture(width: int, height: int, *, seed: int, octaves: int = 7, coars
     _check_size(width, height)
     rng = np.random.default_rng(seed)
     longest = max(width, height)
-    total = None
+    total: np.ndarray | None = None
     for octave in range(octaves):
         cells = coarsest * 2 ** octave
         if cells > longest:
             break
-        size = (max(2, int(round(cells * width / longest))), max(2, int(round(cells * height / longest))))
+        size = (max(2, round(cells * width / longest)), max(2, round(cells * height / longest)))
         lattice = persistence ** octave * rng.standard_normal((size[1], size[0], 3)).astype(np.float32)
         # pyramid accumulation: the coarser octaves, already summed, are upsampled once per octave
         total = lattice if total is None else cv2.resize(total, size, interpolation=cv2.INTER_CUBIC) + lattice
+    if total is None:
+        raise InvalidValue("octaves", f"no octave fits: {octaves} octaves from {coarsest} cells along the "
+                                      f"longer side of a {width} x {height} texture")
     total = cv2.resize(total, (width, height), interpolation=cv2.INTER_CUBIC)
     grey = total.mean(axis=2, keepdims=True)
     total = grey + saturation * (total - grey)
@@ -250,7 +257,8 @@ def shapes_texture(width: int, height: int, *, seed: int, count: int = 400, base
             continue
         region = canvas[y0:y1, x0:x1]
         layer = region.copy()
-        cv2.fillConvexPoly(layer, np.round((points - (x0, y0)) * scale).astype(np.int32), colour, cv2.LINE_AA, shift)
+        cv2.fillConvexPoly(layer, np.round((points - (x0, y0)) * scale).astype(np.int32), colour, cv2.LINE_AA,
+                           shift)
         canvas[y0:y1, x0:x1] = cv2.addWeighted(layer, opacity, region, 1.0 - opacity, 0.0)
     return canvas.astype(np.float32) / 255.0
 
@@ -281,5 +289,5 @@ def _check_size(width: int, height: int) -> None:
         raise InvalidValue("size", f"a texture needs at least 2 x 2 texels, got {width} x {height}")
 
 
-__all__ = ["PHOTO_NAMES", "Texture", "as_rgb", "as_texture", "photo", "fit", "tinted", "atlas", "noise_texture",
-           "shapes_texture", "wood_texture"]
+__all__ = ["PHOTO_NAMES", "Texture", "as_rgb", "as_texture", "atlas", "fit", "noise_texture", "photo",
+           "shapes_texture", "tinted", "wood_texture"]
