@@ -41,7 +41,7 @@ import numpy as np
 
 def load(args):
     from lab.core import Image, ImageSet
-    from lab.data.multiview import rendered
+    from lab.modules.sfm import rendered
 
     loaded = rendered(scene=args.scene, path="orbit", num_views=args.views, width=args.width, height=args.height,
                       arc_deg=args.arc)

@@ -246,7 +246,7 @@ def test_split_inconsistent_never_puts_one_view_twice_in_a_set():
 def _three_view_model(offset_px: float, *, descriptor_far: bool = False):
     """One point seen in views 0 and 1 (track 0); view 2 registered with a free keypoint ``offset_px`` from its
     projection, plus a far keypoint elsewhere."""
-    from lab.modules.sfm import _Model, _keypoint_trees
+    from lab.modules.sfm import GrowingModel, keypoint_trees
 
     K = np.array([[300.0, 0, 160], [0, 300, 120], [0, 0, 1]])
     Ks = np.repeat(K[None], 3, axis=0)
@@ -263,17 +263,17 @@ def _three_view_model(offset_px: float, *, descriptor_far: bool = False):
     descriptors = np.ones((4, 128))
     if descriptor_far:
         descriptors[2, :64] = -1.0
-    model = _Model(poses, np.ones(3, dtype=bool), X[None].copy(), np.array([0]), np.ones(4, dtype=bool))
-    return model, Ks, keypoints, track_of, descriptors, _keypoint_trees(keypoints, 3)
+    model = GrowingModel(poses, np.ones(3, dtype=bool), X[None].copy(), np.array([0]), np.ones(4, dtype=bool))
+    return model, Ks, keypoints, track_of, descriptors, keypoint_trees(keypoints, 3)
 
 
 @pytest.mark.parametrize("offset_px, attached", [(0.5, True), (1.9, True), (2.5, False), (10.0, False)])
 def test_track_completion_attaches_a_registered_views_observation_within_the_threshold(offset_px, attached):
-    from lab.modules.sfm import _complete_and_merge, unit_descriptors
+    from lab.modules.sfm import complete_and_merge, unit_descriptors
 
     model, K, keypoints, track_of, descriptors, trees = _three_view_model(offset_px)
     sizes = np.array([[320.0, 240.0]] * 3)
-    completed, merged = _complete_and_merge(model, K, keypoints, track_of, unit_descriptors(descriptors), trees, sizes,
+    completed, merged = complete_and_merge(model, K, keypoints, track_of, unit_descriptors(descriptors), trees, sizes,
                                             max_error_px=2.0, max_descriptor_distance=0.5)
     assert merged == 0
     assert completed == int(attached)
@@ -283,17 +283,17 @@ def test_track_completion_attaches_a_registered_views_observation_within_the_thr
 
 
 def test_track_completion_rejects_a_keypoint_that_looks_different():
-    from lab.modules.sfm import _complete_and_merge, unit_descriptors
+    from lab.modules.sfm import complete_and_merge, unit_descriptors
 
     model, K, keypoints, track_of, descriptors, trees = _three_view_model(0.5, descriptor_far=True)
     sizes = np.array([[320.0, 240.0]] * 3)
-    completed, _ = _complete_and_merge(model, K, keypoints, track_of, unit_descriptors(descriptors), trees, sizes,
+    completed, _ = complete_and_merge(model, K, keypoints, track_of, unit_descriptors(descriptors), trees, sizes,
                                        max_error_px=2.0, max_descriptor_distance=0.5)
     assert completed == 0 and track_of.tolist() == [0, 0, -1, -1]
 
 
 def test_track_merging_joins_two_points_of_one_3d_point():
-    from lab.modules.sfm import _complete_and_merge, _keypoint_trees, _Model, unit_descriptors
+    from lab.modules.sfm import GrowingModel, complete_and_merge, keypoint_trees, unit_descriptors
 
     model, K, keypoints, _, _, _ = _three_view_model(0.3)
     # point A (track 0) seen in views 0 and 1; point B (track 1), 2 mm away, seen in views 2 and 3 (view 3 at
@@ -301,11 +301,11 @@ def test_track_merging_joins_two_points_of_one_3d_point():
     keypoints = Points2D(np.vstack([keypoints.xy, keypoints.xy[0] + [0.2, 0.1]]), view=np.array([0, 1, 2, 2, 3]))
     poses = np.concatenate([model.poses, model.poses[:1]])
     points = np.vstack([model.points, model.points[0] + [0.002, 0.0, 0.0]])
-    model = _Model(poses, np.ones(4, dtype=bool), points.copy(), np.array([0, 1]), np.ones(5, dtype=bool))
+    model = GrowingModel(poses, np.ones(4, dtype=bool), points.copy(), np.array([0, 1]), np.ones(5, dtype=bool))
     track_of = np.array([0, 0, 1, -1, 1])
     K = np.repeat(K[:1], 4, axis=0)
-    completed, merged = _complete_and_merge(model, K, keypoints, track_of, unit_descriptors(np.ones((5, 128))),
-                                            _keypoint_trees(keypoints, 4), np.array([[320.0, 240.0]] * 4),
+    completed, merged = complete_and_merge(model, K, keypoints, track_of, unit_descriptors(np.ones((5, 128))),
+                                            keypoint_trees(keypoints, 4), np.array([[320.0, 240.0]] * 4),
                                             max_error_px=2.0, max_descriptor_distance=0.5)
     assert merged == 1 and completed == 0
     assert len(model.points) == 1 and track_of.tolist() == [0, 0, 0, -1, 0]

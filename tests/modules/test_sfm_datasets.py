@@ -1,13 +1,12 @@
-"""lab.data.multiview: rendered multi-view scenes with exact truth, a folder of photos, the course's match files."""
+"""lab.modules.sfm.datasets: rendered multi-view scenes with exact truth, a folder of photos, the course's match files."""
 
 import cv2
 import numpy as np
 import pytest
 
 from lab.core import ImageSet, Image, InvalidControl, InvalidValue
-from lab.data.multiview import (FOCAL_GUESS_FACTOR, camera_path, check_intrinsics, exif_focal_px, match_files, photos,
-                                read_k_matrix, rendered, scene_extent)
-from lab.modules.sfm import PIPELINE
+from lab.modules.sfm import (FOCAL_GUESS_FACTOR, PIPELINE, camera_path, check_intrinsics, exif_focal_px, match_files,
+                             photos, read_k_matrix, rendered, scene_extent)
 
 SMALL = dict(num_views=3, width=96, height=72, supersample=1, noise=0.0)
 

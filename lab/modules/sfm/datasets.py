@@ -1,6 +1,6 @@
-"""Multi-view datasets for structure from motion: rendered scenes with exact truth, a folder of photos, match files.
+"""The SfM module's datasets: rendered scenes with exact truth, a folder of photos, the course's match files.
 
-Every dataset seeds the state the SfM module reads (``lab/modules/sfm.py``): ``images`` (an
+Every dataset seeds the state the SfM steps read (:mod:`lab.modules.sfm.steps`): ``images`` (an
 ImageSet of ``V >= 2`` views) and ``K`` ``(V, 3, 3)`` (one camera matrix per view; OpenCV pixel
 convention, pixel (0, 0) the centre of the top-left pixel). Ground truth is returned apart from the
 state (DESIGN.md section 1) so no step can see it.
@@ -26,6 +26,7 @@ import numpy as np
 from lab.core import Image, ImageSet, InvalidValue, Loaded, Points2D, Range
 from lab.core.budgets import check_dataset_pixels
 from lab.data.files import check_folder, list_images, read_images
+from lab.data.matchfile import MatchFiles, read_match_files
 
 #: 35 mm film diagonal, millimetres (EXIF ``FocalLengthIn35mmFilm`` is relative to it).
 FILM_DIAGONAL_MM = float(np.hypot(36.0, 24.0))
@@ -298,7 +299,7 @@ def photos(*, path: str, pattern: str = "*", k_file: str = "", fx: Annotated[flo
 # ----------------------------------------------------------------------------------------------------
 # The course's match files
 # ----------------------------------------------------------------------------------------------------
-def matches_from_match_files(match_files) -> tuple[Points2D, np.ndarray]:
+def matches_from_match_files(match_files: MatchFiles) -> tuple[Points2D, np.ndarray]:
     """The keypoints and pairwise matches of a :class:`lab.data.matchfile.MatchFiles` in the SfM module's form.
 
     Returns ``keypoints`` (Points2D: every image's keypoints in image order, ``view`` per point,
@@ -335,8 +336,6 @@ def match_files(*, path: str, pattern: str = "*", k_file: str = "calibration.txt
         cx: principal point x in pixels (negative: the image centre).
         cy: principal point y in pixels (negative: the image centre).
     """
-    from lab.data.matchfile import read_match_files
-
     check_folder(path)
     if k_file and not os.path.isfile(os.path.join(path, k_file)):
         k_file = "" if k_file == "calibration.txt" else k_file

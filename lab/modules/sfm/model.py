@@ -1,0 +1,150 @@
+"""The reconstruction while a step grows it (:class:`GrowingModel`), and what is measured and drawn of it.
+
+A step thaws its input model into a :class:`GrowingModel` (mutable arrays it changes in place), works
+on it, and writes a copy to the state. Observations are implicit: keypoint ``k`` observes point
+``p`` when its track (``track_of[k]``) is the point's (``point_tracks[p]``), its view is registered
+and it is still ``observed``.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+
+from lab.core import Cameras, ImageSet, InvalidValue, PointCloud, Points2D
+from lab.modules.sfm._checks import keypoint_views
+
+
+def poses_matrix(R: np.ndarray, t: np.ndarray) -> np.ndarray:
+    """``[R | t]`` ``(..., 3, 4)`` of rotations ``(..., 3, 3)`` and translations ``(..., 3)``."""
+    return np.concatenate([R, t[..., None]], axis=-1)
+
+
+def ray_angles_deg(centers: np.ndarray, X: np.ndarray, mask: np.ndarray) -> np.ndarray:
+    """Largest angle (deg) between two rays from the observing camera centres to each point.
+
+    ``centers`` ``(V, 3)``, ``X`` ``(n, 3)``, ``mask`` ``(V, n)``; a point seen once gets 0.
+    """
+    rays = X[None] - centers[:, None]  # (V, n, 3)
+    rays /= np.maximum(np.linalg.norm(rays, axis=2, keepdims=True), 1e-300)
+    cos = np.einsum("ank,bnk->nab", rays, rays)
+    both = mask.T[:, :, None] & mask.T[:, None, :]
+    cos = np.where(both, cos, 1.0)
+    return np.degrees(np.arccos(np.clip(cos.min(axis=(1, 2)), -1.0, 1.0)))
+
+
+def sample_colors(image: Any, xy: np.ndarray) -> np.ndarray:
+    """Colours ``(N, 3)`` in [0, 1] of the pixels nearest to ``xy``."""
+    cols = np.clip(np.round(xy[:, 0]).astype(int), 0, image.width - 1)
+    rows = np.clip(np.round(xy[:, 1]).astype(int), 0, image.height - 1)
+    values = image.pixels[rows, cols].astype(np.float64)
+    return values if values.ndim == 2 else np.repeat(values[:, None], 3, axis=1)
+
+
+def error_colors(errors: np.ndarray, scale: float) -> np.ndarray:
+    """Green (0 px) to red (``scale`` px and more), ``(N, 3)``."""
+    s = np.clip(np.asarray(errors, dtype=np.float64) / max(scale, 1e-9), 0.0, 1.0)[:, None]
+    return (1 - s) * np.array([0.1, 0.8, 0.2]) + s * np.array([0.9, 0.1, 0.1])
+
+
+@dataclass
+class GrowingModel:
+    """The reconstruction while it grows (mutable inside a step; the state gets copies).
+
+    ``poses`` ``(V, 3, 4)``, ``registered`` ``(V,)`` bool, ``points`` ``(P, 3)``, ``point_tracks``
+    ``(P,)`` int (the track of each point), ``observed`` ``(N,)`` bool (keypoints still used).
+    """
+
+    poses: np.ndarray
+    registered: np.ndarray
+    points: np.ndarray
+    point_tracks: np.ndarray
+    observed: np.ndarray
+
+    def point_of_track(self, num_tracks: int) -> np.ndarray:
+        """The point of every track ``(T,)`` (-1: none)."""
+        size = max(num_tracks, int(self.point_tracks.max()) + 1 if len(self.point_tracks) else 0)
+        out = np.full(size, -1, dtype=np.int64)
+        out[self.point_tracks] = np.arange(len(self.point_tracks))
+        return out
+
+    def observations(self, keypoints: Points2D, track_of: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """``(keypoint index, view, point index)`` of every usable observation of a reconstructed point."""
+        view = keypoint_views(keypoints)
+        num_tracks = int(track_of.max()) + 1 if len(track_of) and track_of.max() >= 0 else 0
+        of_track = self.point_of_track(num_tracks)
+        point = np.where(track_of >= 0, of_track[np.maximum(track_of, 0)], -1) if num_tracks else \
+            np.full(len(track_of), -1)
+        use = (point >= 0) & self.registered[view] & self.observed
+        kp = np.flatnonzero(use)
+        return kp, view[kp], point[kp]
+
+    def copy(self) -> GrowingModel:
+        return GrowingModel(self.poses.copy(), self.registered.copy(), self.points.copy(), self.point_tracks.copy(),
+                            self.observed.copy())
+
+
+def project(model: GrowingModel, K: np.ndarray, views: np.ndarray, points: np.ndarray,
+            X: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """Pixels ``(n, 2)`` and depths ``(n,)`` of ``points`` (or of positions ``X``) in ``views``."""
+    X = model.points[points] if X is None else X
+    Xc = np.einsum("nij,nj->ni", model.poses[views, :, :3], X) + model.poses[views, :, 3]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        uv = np.einsum("nij,nj->ni", K[views], Xc / Xc[:, 2:3])[:, :2]
+    return uv, Xc[:, 2]
+
+
+def observation_errors(model: GrowingModel, K: np.ndarray, keypoints: Points2D, kp: np.ndarray, views: np.ndarray,
+                       points: np.ndarray, X: np.ndarray | None = None) -> np.ndarray:
+    """Reprojection error (px) of each observation ``(keypoint, view, point)`` (the point at ``X`` when
+    given); ``inf`` behind the camera."""
+    uv, depth = project(model, K, views, points, X)
+    errors = np.linalg.norm(uv - keypoints.xy[kp], axis=1)
+    return np.where((depth > 0) & np.isfinite(errors), errors, np.inf)
+
+
+def point_colors(keypoints: Points2D, model: GrowingModel, track_of: np.ndarray) -> np.ndarray:
+    """Mean colour over each point's observations ``(P, 3)``."""
+    kp, _, point = model.observations(keypoints, track_of)
+    colors = keypoints.colors if keypoints.colors is not None else np.full((len(keypoints), 3), 0.7)
+    sums = np.zeros((len(model.points), 3))
+    np.add.at(sums, point, colors[kp])
+    counts = np.bincount(point, minlength=len(model.points))[:, None]
+    return np.where(counts > 0, sums / np.maximum(counts, 1), 0.7)
+
+
+def registered_cameras(images: ImageSet, K: np.ndarray, poses: np.ndarray, registered: np.ndarray,
+                       colors: np.ndarray | None = None) -> Cameras:
+    """The registered views as drawn cameras (``views``: their images)."""
+    views = np.flatnonzero(registered)
+    return Cameras(K=K[views], R=poses[views, :, :3], t=poses[views, :, 3], width=images[0].width,
+                   height=images[0].height, image="images", views=views, colors=colors)
+
+
+def drawn(images: ImageSet, K: np.ndarray, keypoints: Points2D, model: GrowingModel,
+          track_of: np.ndarray) -> tuple[Cameras, PointCloud, Points2D]:
+    """The cameras, the coloured points and every observation's pixel, as the viewer draws them."""
+    kp, views, point = model.observations(keypoints, track_of)
+    cloud = PointCloud(model.points, colors=np.clip(point_colors(keypoints, model, track_of), 0, 1))
+    observations = Points2D(keypoints.xy[kp], view=views, ids=point, image="images")
+    return registered_cameras(images, K, model.poses, model.registered), cloud, observations
+
+
+def model_from(poses: Any, registered: Any, points: Any, point_tracks: Any, views: int, keypoints: Points2D,
+               observed: Any = None) -> GrowingModel:
+    """A :class:`GrowingModel` of state arrays, checked (copies: the state is not changed)."""
+    poses = np.asarray(poses, dtype=np.float64)
+    registered = np.asarray(registered, dtype=bool)
+    points = np.asarray(points, dtype=np.float64)
+    tracks = np.asarray(point_tracks, dtype=np.int64)
+    if poses.shape != (views, 3, 4) or registered.shape != (views,):
+        raise InvalidValue("poses", f"expected poses ({views}, 3, 4) and registered ({views},), got {poses.shape} and "
+                                    f"{registered.shape}")
+    if points.shape != (len(tracks), 3):
+        raise InvalidValue("points", f"expected ({len(tracks)}, 3) points, one per track id, got {points.shape}")
+    observed = np.ones(len(keypoints), dtype=bool) if observed is None else np.asarray(observed, dtype=bool)
+    if observed.shape != (len(keypoints),):
+        raise InvalidValue("observed", f"expected ({len(keypoints)},) bool, got {observed.shape}")
+    return GrowingModel(poses.copy(), registered.copy(), points.copy(), tracks.copy(), observed.copy())
