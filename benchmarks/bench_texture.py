@@ -55,7 +55,8 @@ def _timed(function, *args, **kwargs):
 
 def compare_el(sample, *, repeat: int) -> dict:
     size, window = (64, 64), 11
-    efros_leung(sample, size=(16, 16), window=window, rng=np.random.default_rng(0))  # warm-up: compiles the kernel
+    # warm-up: compiles the kernel
+    efros_leung(sample, size=(16, 16), window=window, rng=np.random.default_rng(0))
     reference, reference_s = _timed(efros_leung_reference, sample, size=size, window=window,
                                     rng=np.random.default_rng(SEED))
     fast_times = []
@@ -72,17 +73,19 @@ def compare_el(sample, *, repeat: int) -> dict:
 
 def compare_quilting(sample, *, repeat: int) -> dict:
     size = (256, 256)
-    (el_pixels, el_trace), el_s = _timed(efros_leung, sample, size=size, window=11, rng=np.random.default_rng(SEED))
+    (el_pixels, el_trace), el_s = _timed(efros_leung, sample, size=size, window=11,
+                                         rng=np.random.default_rng(SEED))
     quilt_times = []
     for _ in range(repeat):
-        (quilt_pixels, quilt_source, _), seconds = _timed(image_quilting, sample, size=size, block=24, overlap=5,
-                                                          rng=np.random.default_rng(SEED))
+        (quilt_pixels, quilt_source, _), seconds = _timed(image_quilting, sample, size=size, block=24,
+                                                          overlap=5, rng=np.random.default_rng(SEED))
         quilt_times.append(seconds)
     quilt_s = statistics.median(quilt_times)
     el_stat = texture_statistics_distance(el_pixels, sample.pixels)
     quilt_stat = texture_statistics_distance(quilt_pixels, sample.pixels)
     return {"el256_s": el_s, "quilt256_s": quilt_s, "quilt_speedup_vs_el": el_s / quilt_s,
-            "el_stat_distance": el_stat, "quilt_stat_distance": quilt_stat, "quilt_stat_ratio": quilt_stat / el_stat,
+            "el_stat_distance": el_stat, "quilt_stat_distance": quilt_stat,
+            "quilt_stat_ratio": quilt_stat / el_stat,
             "el_seam_score": seam_score(el_pixels, el_trace.source, sample.pixels),
             "quilt_seam_score": seam_score(quilt_pixels, quilt_source, sample.pixels)}
 
@@ -102,11 +105,13 @@ def main() -> None:
         large = LOADERS[name](size=64, downsample=2).state["sample"]
         el = compare_el(small, repeat=args.repeat)
         print(f"{name}: Efros-Leung 64x64 from 32x32, window 11: reference {el['el_reference_s']:.2f} s, "
-              f"fast {el['el_fast_s']:.3f} s, speed-up {el['el_speedup']:.1f}x, identical {el['el_identical']}")
+              f"fast {el['el_fast_s']:.3f} s, speed-up {el['el_speedup']:.1f}x, "
+              f"identical {el['el_identical']}")
         quilting = compare_quilting(large, repeat=args.repeat)
         print(f"{name}: 256x256 from 64x64: Efros-Leung {quilting['el256_s']:.2f} s (stat distance "
               f"{quilting['el_stat_distance']:.3f}, seam score {quilting['el_seam_score']:.2f}); quilting "
-              f"{quilting['quilt256_s']:.3f} s (stat distance {quilting['quilt_stat_distance']:.3f}, seam score "
+              f"{quilting['quilt256_s']:.3f} s (stat distance {quilting['quilt_stat_distance']:.3f}, "
+              "seam score "
               f"{quilting['quilt_seam_score']:.2f}); quilting {quilting['quilt_speedup_vs_el']:.0f}x faster, "
               f"stat ratio {quilting['quilt_stat_ratio']:.2f}")
         values = {**el, **quilting}
