@@ -35,6 +35,7 @@ import json
 import os
 import statistics
 import timeit
+from typing import Literal
 
 import cv2
 import numpy as np
@@ -50,7 +51,7 @@ RESULT_KEYS = ("sgm_bad2_all", "sgbm_bad2_all", "sgm_bad2_pred", "sgbm_bad2_pred
                "census_bad2_pred", "stereobm_bad2_pred")
 
 
-def ours(left: Image, right: Image, *, method: str) -> np.ndarray:
+def ours(left: Image, right: Image, *, method: Literal["sgm", "none"]) -> np.ndarray:
     """The module's steps with their defaults, from the rectified pair to the filtered disparity."""
     volume = cost_volume(left, right, max_disparity=MAX_DISPARITY)
     aggregated = aggregate_costs(volume, method=method)
@@ -62,7 +63,7 @@ def ours(left: Image, right: Image, *, method: str) -> np.ndarray:
 
 def sgbm(bgr_left: np.ndarray, bgr_right: np.ndarray) -> np.ndarray:
     block = 3
-    matcher = cv2.StereoSGBM_create(minDisparity=0, numDisparities=MAX_DISPARITY + 1, blockSize=block,
+    matcher = cv2.StereoSGBM.create(minDisparity=0, numDisparities=MAX_DISPARITY + 1, blockSize=block,
                                     P1=8 * 3 * block * block, P2=32 * 3 * block * block, disp12MaxDiff=1,
                                     uniquenessRatio=10, speckleWindowSize=100, speckleRange=2,
                                     mode=cv2.STEREO_SGBM_MODE_SGBM_3WAY)
@@ -71,7 +72,7 @@ def sgbm(bgr_left: np.ndarray, bgr_right: np.ndarray) -> np.ndarray:
 
 def stereobm(gray_left: np.ndarray, gray_right: np.ndarray, *, block: int,
              strict: bool = False) -> np.ndarray:
-    matcher = cv2.StereoBM_create(numDisparities=MAX_DISPARITY + 1, blockSize=block)
+    matcher = cv2.StereoBM.create(numDisparities=MAX_DISPARITY + 1, blockSize=block)
     if strict:
         matcher.setUniquenessRatio(30)
         matcher.setSpeckleWindowSize(100)

@@ -10,7 +10,7 @@ and window. The loops are the Numba kernels of :mod:`._kernels`; their readable 
 
 from __future__ import annotations
 
-from typing import Literal
+from typing import Literal, get_args
 
 import numpy as np
 
@@ -20,9 +20,9 @@ from lab.modules.stereo._kernels import (_box_columns_kernel, _box_rows_kernel, 
                                          _census_transform_kernel, _hamming_costs_kernel,
                                          _ncc_from_moments_kernel)
 
-#: Matching costs :func:`cost_volume` knows.
-COSTS: tuple[str, ...] = ("ssd", "nssd", "sad", "zsad", "ncc", "rank", "census")
+#: A matching cost :func:`cost_volume` knows, and all of them in order.
 Cost = Literal["ssd", "nssd", "sad", "zsad", "ncc", "rank", "census"]
+COSTS: tuple[str, ...] = get_args(Cost)
 
 #: Entries of the float64 volumes :func:`ncc_costs` builds at once (a few disparities at a time).
 NCC_CHUNK_ENTRIES = 2**22

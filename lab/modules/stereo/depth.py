@@ -12,6 +12,7 @@ from lab.core import Cameras, Image, PointCloud
 from lab.geometry.camera import as_intrinsics
 from lab.modules.stereo._checks import check_baseline
 
+
 def depth_from_disparity(disparity: np.ndarray, K: np.ndarray, baseline: float, *,
                          disparity_offset: float = 0.0,
                          disparity_std: float = 0.5) -> tuple[np.ndarray, np.ndarray]:

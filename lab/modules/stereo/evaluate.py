@@ -153,7 +153,6 @@ def evaluate_depth(state: dict[str, Any], truth: dict[str, Any]) -> dict[str, fl
             "within_3u": float(np.mean(error <= 3.0 * np.asarray(state["depth_uncertainty"])[both]))}
 
 
-
 # ----------------------------------------------------------------------------------------------------
 # Inspection: the costs of one pixel
 # ----------------------------------------------------------------------------------------------------

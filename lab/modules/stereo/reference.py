@@ -13,6 +13,7 @@ import numpy as np
 from lab.modules.stereo.costs import census_words, shifted_columns
 from lab.modules.stereo.sgm import SGM_DIRECTIONS
 
+
 def box_mean_reference(values: np.ndarray, window: int) -> np.ndarray:
     """:func:`box_mean` by a summed-area table (Crow 1984): pad by replication, cumulative sums along
     rows and columns, and each window's sum from four table entries,

@@ -1,9 +1,9 @@
-"""Semi-global matching (Hirschmüller 2008, section 3.3): integer costs, both sweeps on the thread pool.
+"""Semi-global matching (Hirschmüller 2008, section 3.3): the aggregation of
+:func:`~lab.modules.stereo.aggregate_costs`.
 
-Costs and penalties are scaled by a power of two and rounded to integers (:func:`quantize_costs`;
-OpenCV's SGBM works in 16-bit integers too), and the fast kernel (``_sgm_sweep_kernel``, two
-sweeps of 2 or 4 paths each) computes on them exactly what :func:`lab.modules.stereo.sgm_reference`
-computes path by path.
+The costs are checked and quantized (:func:`sgm_inputs`, :func:`quantize_costs`), then the two
+sweeps of the fast kernel run at once on the thread pool (:func:`semi_global_matching`); its
+oracle, path by path, is :func:`lab.modules.stereo.reference.sgm_reference`.
 """
 
 from __future__ import annotations

@@ -1,5 +1,4 @@
-"""The winners of a cost volume: the left image's checked, the right image's, the costs around them, the best
-two.
+"""The winners of a cost volume: checked, the right image's, the costs around them, the best two.
 
 Helpers of the steps :func:`~lab.modules.stereo.winner_take_all` (:func:`check_winners`),
 :func:`~lab.modules.stereo.left_right_check` (:func:`right_disparity`),
@@ -16,6 +15,7 @@ from lab.core import InvalidValue
 from lab.core.kernels import bands, in_parallel
 from lab.modules.stereo._checks import check_volume
 from lab.modules.stereo._kernels import _best_two_costs_kernel, _costs_around_kernel, _right_disparity_kernel
+
 
 def check_winners(volume: np.ndarray, winner: np.ndarray) -> None:
     """NaN anywhere in a pixel's costs makes it the argmin (NumPy's rule), so checking the winners' costs
