@@ -3,6 +3,8 @@ value type, and :func:`export_scene_html` for headless reports.
 
     from lab.viewer import ViewerApp
     viewer = ViewerApp(store, port=8080).start()   # one session per browser tab
+
+The server is :mod:`lab.viewer.app`; one tab is :class:`lab.viewer.view.ClientView`.
 """
 
 from __future__ import annotations
@@ -11,5 +13,5 @@ from lab.viewer.app import ClientView, ModuleCatalog, ViewerApp
 from lab.viewer.export import export_scene_html
 from lab.viewer.renderers import RENDERERS, Canvas, StateDrawer, curve_image, overlay_view
 
-__all__ = ["ViewerApp", "ClientView", "ModuleCatalog", "export_scene_html", "RENDERERS", "Canvas", "StateDrawer",
-           "curve_image", "overlay_view"]
+__all__ = ["RENDERERS", "Canvas", "ClientView", "ModuleCatalog", "StateDrawer", "ViewerApp", "curve_image",
+           "export_scene_html", "overlay_view"]

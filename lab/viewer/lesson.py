@@ -1,6 +1,8 @@
 """The viewer's lesson mode: a lesson's text beside its pipeline, and the student's code in it.
 
-A :class:`LessonMode` belongs to one tab (:class:`~lab.viewer.app.ClientView`). It adds:
+A :class:`LessonMode` belongs to one tab (:class:`~lab.viewer.view.ClientView`), which it reaches only
+through a :class:`LessonContext` (what the tab lends it: its GUI, lock and worker, its session and
+step folders; this module imports nothing of the tab's). It adds:
 
 - a **Lesson** folder to the controls: a picker of the catalog's lessons (choosing one opens a
   session on the lesson's module, default dataset), an upload button for the student's ``.py``,
@@ -19,26 +21,30 @@ The page may ask for a lesson with ``?lesson=ID`` (read with the viewer's other 
 viewer keeps ``lesson=ID`` in the address bar while a lesson is open, so a reload comes back to it.
 
 The student's file runs in :class:`~lab.lessons.live.StudentCode`'s sandbox: loading it and every
-comparison run in the tab's worker thread (:meth:`ClientView.in_background`), never on viser's
+comparison run in the tab's worker thread (``LessonContext.in_background``), never on viser's
 threads. Whatever goes wrong (a file that cannot be loaded, a function that raises, times out or
 is refused by the sandbox) is shown in the GUI; the sandbox is closed when the tab closes.
 """
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import logging
+import threading
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
-from typing import Any, Callable, Mapping
+from typing import Any
 
 import numpy as np
 
 from lab.core.errors import InvalidValue, LabError, UnknownName
+from lab.core.pipeline import Pipeline, Session
 from lab.lessons.format import Lesson, LessonCatalog, Task
 from lab.lessons.live import SideBySide, StudentCode, StudentCodeFailed
-from lab.viewer.app import (MEDIA_PANEL_WIDTH, ClientView, _cell, error_text, format_number, set_page_query,
-                            value_summary)
+from lab.viewer.gui import MEDIA_PANEL_WIDTH
 from lab.viewer.renderers import OVERLAY_TYPES, Canvas, StateDrawer, renderer_for
+from lab.viewer.text import cell, error_text, format_number, value_summary
 
 log = logging.getLogger("lab.viewer.lesson")
 
@@ -66,8 +72,8 @@ def code_status(lesson: Lesson, name: str, problems: Mapping[str, str]) -> str:
     lines = [f"Loaded **`{name}`**:", "", "| task | your file |", "|---|---|"]
     for task in lesson.tasks:
         problem = problems.get(task.step, "")
-        verdict = f"✓ defines `{task.step}`" if not problem else f"✗ {_cell(problem)}"
-        lines.append(f"| {_cell(task.title)} | {verdict} |")
+        verdict = f"✓ defines `{task.step}`" if not problem else f"✗ {cell(problem)}"
+        lines.append(f"| {cell(task.title)} | {verdict} |")
     return "\n".join(lines)
 
 
@@ -144,7 +150,7 @@ def comparison_markdown(side: SideBySide) -> str:
         verdict = "⚠ **Your step failed**, so there is nothing to compare."
     parts = [verdict]
     if side.message:
-        parts.append(code_block(side.message) if "\n" in side.message else _cell(side.message))
+        parts.append(code_block(side.message) if "\n" in side.message else cell(side.message))
     for name, reference in side.reference.items():
         if name not in side.student:
             continue
@@ -152,7 +158,8 @@ def comparison_markdown(side: SideBySide) -> str:
         if _is_array(yours) and _is_array(reference):
             parts.append(array_comparison(name, yours, reference))
         elif _drawn(yours) or _drawn(reference):
-            parts.append(f"**`{name}`**: drawn in the **Compare** tab as `{YOURS}/{name}` and `{REFERENCE}/{name}`.")
+            parts.append(f"**`{name}`**: drawn in the **Compare** tab as `{YOURS}/{name}` and "
+                         f"`{REFERENCE}/{name}`.")
         else:
             parts.append(f"{value_summary(f'{YOURS}/{name}', yours)}  \n"
                          f"{value_summary(f'{REFERENCE}/{name}', reference)}")
@@ -192,6 +199,43 @@ def upload_text(name: str, content: bytes) -> str:
     return check_upload(content, name, limit=DEFAULT_MAX_SUBMISSION_BYTES)
 
 
+# --- what the tab lends the lesson mode ---------------------------------------------------------------
+@dataclass(frozen=True)
+class LessonContext:
+    """What a :class:`LessonMode` may use of the tab it lives in (the tab makes it; nothing else is reached).
+
+    ``gui`` and ``scene`` are the tab's viser GUI and scene, ``media_panel`` its panel of images (the
+    lesson's text is docked above it), ``lock`` the tab's lock. ``session()`` is the session shown (None
+    before one opens); ``open_session(pipeline)`` shows a new session on a pipeline's default dataset;
+    ``step_folder(step)`` is the GUI folder of a step of the session shown (None when it has no such
+    step) and ``step_params(step)`` the controls its widgets show. ``guard(action)`` runs a GUI callback
+    showing what it raises; ``in_background(job, name)`` runs a job in the tab's worker thread;
+    ``show_error`` / ``clear_error`` use the tab's error box; ``set_query(**params)`` writes the tab's
+    address bar (``lesson=ID``; a no-op off a browser).
+    """
+
+    gui: Any
+    scene: Any
+    media_panel: Any
+    lock: threading.RLock
+    session: Callable[[], Session | None]
+    open_session: Callable[[Pipeline], None]
+    step_folder: Callable[[str], Any]
+    step_params: Callable[[str], dict[str, Any]]
+    guard: Callable[[Callable[[], Any]], None]
+    in_background: Callable[[Callable[[], Any], str], None]
+    show_error: Callable[[BaseException], None]
+    clear_error: Callable[[], None]
+    set_query: Callable[..., None]
+
+    def require_session(self) -> Session:
+        """The session shown; :class:`LabError` when there is none."""
+        session = self.session()
+        if session is None:
+            raise LabError("session", "no session is open: press New session")
+        return session
+
+
 # --- the GUI of one tab --------------------------------------------------------------------------
 @dataclass
 class TaskRow:
@@ -206,10 +250,10 @@ class TaskRow:
 
 
 class LessonMode:
-    """Lesson mode of one :class:`ClientView` (see the module docstring)."""
+    """Lesson mode of one tab, reached through ``ctx`` (see the module docstring)."""
 
-    def __init__(self, view: ClientView, catalog: LessonCatalog) -> None:
-        self.view = view
+    def __init__(self, ctx: LessonContext, catalog: LessonCatalog) -> None:
+        self.ctx = ctx
         self.catalog = catalog
         self.lesson: Lesson | None = None
         self.code: StudentCode | None = None
@@ -230,19 +274,21 @@ class LessonMode:
 
     # --- static GUI ------------------------------------------------------------------------------
     def _build(self) -> None:
-        gui = self.view.gui
+        gui = self.ctx.gui
         self.folder = gui.add_folder("Lesson", order=2.5)
         with self.folder:
             self.picker = gui.add_dropdown("lesson", [NO_LESSON, *self._ids()], initial_value=NO_LESSON,
-                                           hint="a lesson: its text opens beside the pipeline, in a new session")
+                                           hint="a lesson: its text opens beside the pipeline, in a new "
+                                                "session")
             self.summary = gui.add_markdown("Pick a lesson above.")
             self.upload_button = gui.add_upload_button(
                 "Upload my .py", mime_type=".py,text/x-python", disabled=True,
                 hint="your filled-in starter.py: its functions can replace the lesson's steps")
             self.starter_button = gui.add_button("Load starter.py", disabled=True,
-                                                 hint="load the lesson's starter file (every task unimplemented)")
+                                                 hint="load the lesson's starter file (every task "
+                                                      "unimplemented)")
             self.code_md = gui.add_markdown("")
-        guard = self.view._guard
+        guard = self.ctx.guard
         self.picker.on_update(lambda _: None if self._syncing else guard(self._picked))
         self.upload_button.on_upload(lambda event: guard(lambda: self.load_upload(event.target.value)))
         self.starter_button.on_click(lambda _: guard(self.load_starter))
@@ -282,7 +328,7 @@ class LessonMode:
         module (see :meth:`new_session`). Raises UnknownName / LessonFormatError.
         """
         lesson = self.catalog.get(name)
-        with self.view.lock:
+        with self.ctx.lock:
             if self.lesson is None or self.lesson.id != lesson.id:
                 self._drop_code()
                 self.use_mine.clear()
@@ -292,18 +338,17 @@ class LessonMode:
             self.summary.content = lesson_summary(lesson)
             self.upload_button.disabled = self.starter_button.disabled = False
             self.attach()
-        if self.view.is_client:
-            set_page_query(self.view.target, lesson=lesson.id)
+        self.ctx.set_query(lesson=lesson.id)
         return lesson
 
     def new_session(self) -> None:
         """Open a fresh session on the lesson's module (its default dataset)."""
         lesson = self._require_lesson()
-        self.view.open_session(self.view.store.create(lesson.pipeline))
+        self.ctx.open_session(lesson.pipeline)
 
     def leave(self) -> None:
         """No lesson: close the student's code, take the lesson's widgets away (the session stays)."""
-        with self.view.lock:
+        with self.ctx.lock:
             self._drop_code()
             self._remove_rows()
             self._clear_compare()
@@ -312,18 +357,17 @@ class LessonMode:
             self._set_picker(NO_LESSON)
             self.summary.content = "Pick a lesson above."
             self.upload_button.disabled = self.starter_button.disabled = True
-        if self.view.is_client:
-            set_page_query(self.view.target, lesson=None)
+        self.ctx.set_query(lesson=None)
 
     def _show_panel(self, lesson: Lesson) -> None:
         """The lesson's text in its panel, docked on the left with the images below it."""
         if self.panel is None:
-            gui = self.view.gui
+            gui = self.ctx.gui
             self.panel = gui.add_panel()
             with self.panel.add_tab("Lesson"):
                 self.text = gui.add_markdown("")
             try:  # one column: the text above, the images below
-                media = self.view.media_panel
+                media = self.ctx.media_panel
                 if media.visible:  # docked on the left: split its column (keeps its width)
                     self.panel.dock_above(media)
                 else:  # a hidden panel is no anchor: dock the text, put the images under it
@@ -341,54 +385,54 @@ class LessonMode:
         self.panel.remove()
         self.panel = self.text = None
         try:
-            self.view.media_panel.dock_left()
-            self.view.media_panel.set_width(MEDIA_PANEL_WIDTH)
+            self.ctx.media_panel.dock_left()
+            self.ctx.media_panel.set_width(MEDIA_PANEL_WIDTH)
         except Exception as exc:  # placement is cosmetic
             log.info("could not dock the image panel: %s", exc)
 
     def attach(self) -> None:
         """Add the task widgets to the open session's step folders (after the view rebuilt them)."""
-        with self.view.lock:
+        with self.ctx.lock:
             self._remove_rows()
             self._clear_compare()
-            lesson, session = self.lesson, self.view.session
+            lesson, session = self.lesson, self.ctx.session()
             if lesson is None or session is None:
                 return
             if session.pipeline.name != lesson.pipeline.name:
-                self.code_md.content = (f"This session runs module `{session.pipeline.name}`; the lesson is about "
-                                        f"`{lesson.pipeline.name}`. Pick the lesson again to open a session on it.")
+                self.code_md.content = (f"This session runs module `{session.pipeline.name}`; the lesson is "
+                                        f"about `{lesson.pipeline.name}`. Pick the lesson again to open a "
+                                        "session on it.")
                 return
-            gui = self.view.gui
+            gui = self.ctx.gui
             for task in lesson.tasks:
-                row = self.view.rows.get(task.step)
-                if row is None:
+                folder = self.ctx.step_folder(task.step)
+                if folder is None:
                     continue
-                with row.folder:
-                    note = gui.add_markdown(f"**Your task: {task.title}** ({format_number(task.points)} points)  \n"
+                with folder:
+                    note = gui.add_markdown(f"**Your task: {task.title}** "
+                                            f"({format_number(task.points)} points)  \n"
                                             f"`def {task.signature}`")
                     use_mine = gui.add_checkbox("use my code", self.use_mine.get(task.step, False),
                                                 hint="Run calls your function (in a sandbox) in place of the "
                                                      "reference's")
                     compare = gui.add_button("Compare with reference",
-                                             hint="run the reference's step and yours on the same inputs and show "
-                                                  "both outputs (the session is left as it is)")
+                                             hint="run the reference's step and yours on the same inputs and "
+                                                  "show both outputs (the session is left as it is)")
                     result = gui.add_markdown("")
-                use_mine.on_update(lambda event, step=task.step: self.use_mine.__setitem__(step, event.target.value))
-                compare.on_click(lambda _, step=task.step: self.view._guard(lambda: self.compare(step)))
-                self.rows[task.step] = TaskRow(task, row.folder, use_mine, compare, result,
+                use_mine.on_update(lambda event, step=task.step:
+                                   self.use_mine.__setitem__(step, event.target.value))
+                compare.on_click(lambda _, step=task.step: self.ctx.guard(lambda: self.compare(step)))
+                self.rows[task.step] = TaskRow(task, folder, use_mine, compare, result,
                                                [note, use_mine, compare, result])
             self._show_code()
 
     def _remove_rows(self) -> None:
         for step, row in self.rows.items():
-            step_row = self.view.rows.get(step)
-            if step_row is None or step_row.folder is not row.folder:
-                continue  # the view rebuilt its step folders: these went with the old ones
+            if self.ctx.step_folder(step) is not row.folder:
+                continue  # the tab rebuilt its step folders: these went with the old ones
             for handle in row.handles:
-                try:
+                with contextlib.suppress(Exception):  # gone with its step folder already
                     handle.remove()
-                except Exception:  # gone with its step folder already
-                    pass
         self.rows = {}
 
     # --- the student's code ----------------------------------------------------------------------
@@ -409,7 +453,7 @@ class LessonMode:
     def load_source(self, name: str, source: str) -> None:
         """Start ``source`` in a sandbox (in the tab's worker) and use it for the lesson's tasks."""
         lesson = self._require_lesson()
-        self.view.clear_error()
+        self.ctx.clear_error()
         self.code_md.content = f"Loading `{name}` ..."
 
         def job() -> None:
@@ -418,7 +462,7 @@ class LessonMode:
             except StudentCodeFailed as exc:
                 self._show_load_failure(name, exc.reason)
                 raise
-            with self.view.lock:
+            with self.ctx.lock:
                 if self.closed or self.lesson is not lesson:  # the tab closed or the lesson changed meanwhile
                     code.close()
                     return
@@ -434,7 +478,7 @@ class LessonMode:
             if old is not None:
                 old.close()
 
-        self.view.in_background(job, "load-code")
+        self.ctx.in_background(job, "load-code")
 
     def _show_code(self) -> None:
         lesson, code = self.lesson, self.code
@@ -447,7 +491,7 @@ class LessonMode:
 
     def _show_load_failure(self, name: str, reason: str) -> None:
         still = f"\n\nStill using `{self.code_name}`." if self.code is not None else ""
-        self.code_md.content = f"**Could not load `{_cell(name)}`:**\n\n{code_block(reason)}{still}"
+        self.code_md.content = f"**Could not load `{cell(name)}`:**\n\n{code_block(reason)}{still}"
 
     def _drop_code(self) -> None:
         code, self.code, self.code_name = self.code, None, ""
@@ -491,33 +535,33 @@ class LessonMode:
         """Run ``step`` by the reference and by the student on the session's inputs (in the tab's
         worker) and show both outputs; the session is left as it is."""
         self._require_lesson()
-        session = self.view._require_session()
+        session = self.ctx.require_session()
         row = self.rows.get(step)
         if row is None:
             raise UnknownName("step", f"step {step!r} is not a task of this lesson in this session")
         code = self.code
         if code is None:
             raise StudentCodeFailed(step, NO_CODE)
-        params = self.view.step_params(step)
-        self.view.clear_error()
+        params = self.ctx.step_params(step)
+        self.ctx.clear_error()
         row.result.content = "Comparing ..."
 
         def job() -> None:
             try:
                 side = code.compare(session, step, params)
             except LabError as exc:
-                row.result.content = f"**Could not compare:** {_cell(error_text(exc))}"
+                row.result.content = f"**Could not compare:** {cell(error_text(exc))}"
                 raise
-            with self.view.lock:
+            with self.ctx.lock:
                 if self.closed:
                     return
                 self.compared[step] = side
                 row.result.content = comparison_markdown(side)
                 self._draw_compared(session.state)
             if side.passed is None:
-                self.view.show_error(StudentCodeFailed(step, side.message))
+                self.ctx.show_error(StudentCodeFailed(step, side.message))
 
-        self.view.in_background(job, f"compare-{step}")
+        self.ctx.in_background(job, f"compare-{step}")
 
     def _draw_compared(self, state: Mapping[str, Any]) -> None:
         """Draw the drawable outputs of every comparison in the Compare tab (and the scene)."""
@@ -531,9 +575,10 @@ class LessonMode:
         if self._compare_drawer is None:
             self._compare_tab = self.panel.add_tab("Compare")
             with self._compare_tab:
-                self.view.gui.add_markdown(f"Your outputs (`{YOURS}/...`) and the reference's (`{REFERENCE}/...`) "
+                self.ctx.gui.add_markdown(f"Your outputs (`{YOURS}/...`) and the reference's "
+                                          f"(`{REFERENCE}/...`) "
                                            "on the same inputs, from **Compare with reference**.", order=-1.0)
-            self._compare_drawer = StateDrawer(Canvas(scene=self.view.scene, gui=self.view.gui,
+            self._compare_drawer = StateDrawer(Canvas(scene=self.ctx.scene, gui=self.ctx.gui,
                                                       images=self._compare_tab, plots=self._compare_tab))
         names = sorted({name.split("/", 1)[1] for name in drawn})
         order = {f"{prefix}/{name}": 2.0 * i + j for i, name in enumerate(names)
@@ -541,7 +586,7 @@ class LessonMode:
         self._compare_drawer.sync(drawn, order=order)
         if self._compare_drawer.errors:
             problems = "; ".join(f"{k}: {v}" for k, v in self._compare_drawer.errors.items())
-            self.view.show_error(LabError("drawing", problems))
+            self.ctx.show_error(LabError("drawing", problems))
 
     def _clear_compare(self) -> None:
         self.compared.clear()
@@ -556,12 +601,21 @@ class LessonMode:
 
     def close(self) -> None:
         """The tab closed: end the student's sandbox (a load still running closes its own)."""
-        with self.view.lock:
+        with self.ctx.lock:
             self.closed = True
             code, self.code = self.code, None
         if code is not None:
             code.close()
 
 
-__all__ = ["LessonMode", "TaskRow", "array_comparison", "comparison_markdown", "side_by_side_state", "lesson_summary",
-           "code_status", "upload_text", "NO_LESSON"]
+__all__ = [
+    "NO_LESSON",
+    "LessonMode",
+    "TaskRow",
+    "array_comparison",
+    "code_status",
+    "comparison_markdown",
+    "lesson_summary",
+    "side_by_side_state",
+    "upload_text",
+]

@@ -7,7 +7,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-import lab.viewer.app as viewer_app
+import lab.viewer.view as viewer_view
 from lab.core.errors import InvalidValue
 from lab.viewer.app import ClientView, ModuleCatalog
 from lab.viewer.interactions import EXPLORE_ROOT, Interaction, interactions_for
@@ -58,7 +58,7 @@ class Broken(Interaction):
 @pytest.fixture
 def view(server, store, monkeypatch):
     Recorder.made.clear()
-    monkeypatch.setattr(viewer_app, "interactions_for", lambda name: [Recorder] if name == "toy" else [])
+    monkeypatch.setattr(viewer_view, "interactions_for", lambda name: [Recorder] if name == "toy" else [])
     view = ClientView(server, store, ModuleCatalog({"toy": TOY}), is_client=False, background=False)
     view.start({})
     return view
@@ -100,7 +100,7 @@ def test_restart_keeps_module_and_dataset_and_changes_options(view):
 
 
 def test_a_broken_interaction_is_shown_not_raised(server, store, monkeypatch):
-    monkeypatch.setattr(viewer_app, "interactions_for", lambda name: [Broken, Recorder])
+    monkeypatch.setattr(viewer_view, "interactions_for", lambda name: [Broken, Recorder])
     view = ClientView(server, store, ModuleCatalog({"toy": TOY}), is_client=False, background=False)
     view.start({})
     assert any("broken on purpose" in e for e in view.errors)
@@ -109,7 +109,7 @@ def test_a_broken_interaction_is_shown_not_raised(server, store, monkeypatch):
 
 
 def test_the_tab_frames_what_interactions_draw_when_the_state_has_no_3d_values(server, store, monkeypatch):
-    monkeypatch.setattr(viewer_app, "interactions_for", lambda name: [Recorder, Boxed])
+    monkeypatch.setattr(viewer_view, "interactions_for", lambda name: [Recorder, Boxed])
     view = ClientView(server, store, ModuleCatalog({"toy": TOY}), is_client=False, background=False)
     view.start({})
     eye, look_at = view.framing(dict(view.session.state))
@@ -122,7 +122,7 @@ def test_the_tab_frames_what_interactions_draw_when_the_state_has_no_3d_values(s
 
 def test_restart_runs_to_a_step_with_params_and_carries_to_the_new_interactions(view):
     old = view.interactions[0]
-    assert old.ctx.restart({"count": 3}, run_until="mean_intensity",
+    assert old.ctx.restart({"count": 3}, run_to="mean_intensity",
                            params=lambda fresh: {"add_noise": {"sigma": 0.0 if len(fresh.state["images"]) == 3 else 1.0}},
                            carry={"note": "from the old tab"})
     view.wait()
@@ -133,4 +133,4 @@ def test_restart_runs_to_a_step_with_params_and_carries_to_the_new_interactions(
     assert view.interactions[0].ctx.carried == {"note": "from the old tab"}
     assert not old.ctx.restart({"count": 99}) and "count" in view.errors[-1]  # out of range: shown, session kept
     assert view.session is session and view.interactions[0].ctx.carried == {"note": "from the old tab"}
-    assert not view.interactions[0].ctx.restart({}, run_until="no_such_step") and view.session is session
+    assert not view.interactions[0].ctx.restart({}, run_to="no_such_step") and view.session is session

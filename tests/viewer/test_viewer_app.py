@@ -106,8 +106,8 @@ def test_toy_steps_are_listed_in_order_with_status(view):
 
 
 def test_dataset_picker_offers_the_module_datasets_and_options(server, store, view):
-    assert view.module_dropdown.options == ("toy",)
-    assert view.dataset_dropdown.value == "gradients"
+    assert view.tab.module_dropdown.options == ("toy",)
+    assert view.tab.dataset_dropdown.value == "gradients"
     count = view._dataset_option_handles["count"]
     assert (count.min, count.max, count.value) == (1, 8, 3)
     count.value = 2
@@ -115,7 +115,7 @@ def test_dataset_picker_offers_the_module_datasets_and_options(server, store, vi
     view.new_session_from_gui()
     assert view.session is not first and len(view.session.get("images")) == 2
     assert view.session.options == {"count": 2}
-    assert view.session_id_text.value == view.session.id
+    assert view.tab.session_id_text.value == view.session.id
 
 
 def test_run_draws_outputs_and_shows_metrics(server, view):
@@ -129,8 +129,8 @@ def test_run_draws_outputs_and_shows_metrics(server, view):
     assert "mean_abs_change" in view.rows["add_noise"].metrics.content
     assert "intensity" in view.rows["add_noise"].metrics.content  # the metric's unit
     assert "noisy" in view.drawer.drawn and "images" in view.drawer.drawn
-    assert "add_noise" in view.history_md.content
-    assert view.media_panel.visible
+    assert "add_noise" in view.tab.history_md.content
+    assert view.tab.media_panel.visible
 
 
 def test_run_to_here_runs_missing_steps_with_progress(server, view):
@@ -141,12 +141,12 @@ def test_run_to_here_runs_missing_steps_with_progress(server, view):
     assert session.history[-1].params == {"iterations": 12}
     assert "means_abs_error (evaluation)" in view.rows["mean_intensity"].metrics.content
     # the loss of every iteration was plotted, the bar reached 100 %
-    assert view.progress_folder.visible
-    assert list(view.loss_plot.data[0]) == list(range(1, 13))
-    assert view.loss_plot.data[1][-1] == pytest.approx(0.5 ** 12)
-    assert view.progress_bar.value == pytest.approx(100.0)
-    assert view.progress_text.content.startswith("**lift**: iteration 12/12") and "**ok**" in view.progress_text.content
-    assert view.cancel_button.disabled  # nothing left to cancel
+    assert view.tab.progress_folder.visible
+    assert list(view.tab.loss_plot.data[0]) == list(range(1, 13))
+    assert view.tab.loss_plot.data[1][-1] == pytest.approx(0.5 ** 12)
+    assert view.tab.progress_bar.value == pytest.approx(100.0)
+    assert view.tab.progress_text.content.startswith("**lift**: iteration 12/12") and "**ok**" in view.tab.progress_text.content
+    assert view.tab.cancel_button.disabled  # nothing left to cancel
     assert isinstance(server.scene.get_handle_by_name("/lab/cloud"), viser.PointCloudHandle)
 
 
@@ -155,8 +155,8 @@ def test_progress_of_a_long_step_run_over_rest_is_shown(view):
     session.run_until("mean_intensity")
     session.run("lift", {"iterations": 5})  # a script's run: the view listens to the session
     view.poll()
-    assert view.progress_folder.visible and list(view.loss_plot.data[0]) == [1, 2, 3, 4, 5]
-    assert "**ok**" in view.progress_text.content and "3. Lift ✓ done" == view.rows["lift"].folder.label
+    assert view.tab.progress_folder.visible and list(view.tab.loss_plot.data[0]) == [1, 2, 3, 4, 5]
+    assert "**ok**" in view.tab.progress_text.content and "3. Lift ✓ done" == view.rows["lift"].folder.label
 
 
 def test_reset_removes_outputs_and_drawings(server, view):
@@ -171,16 +171,16 @@ def test_reset_removes_outputs_and_drawings(server, view):
 
 def test_errors_are_shown_never_raised(view):
     view.press("mean_intensity", "Run")  # its input does not exist yet
-    assert view.error_box.visible and "missing_input" in view.error_box.content
+    assert view.tab.error_box.visible and "missing_input" in view.tab.error_box.content
     assert view.session.history == []
     view.rows["add_noise"].controls["mode"].value = "bogus"  # a value the dropdown never offers
     view.press("add_noise", "Run")
-    assert "invalid_control" in view.error_box.content and "mode" in view.error_box.content
-    view._guard(lambda: view.open_session_id("nope"))
-    assert "not_found" in view.error_box.content
+    assert "invalid_control" in view.tab.error_box.content and "mode" in view.tab.error_box.content
+    view.guard(lambda: view.open_session_id("nope"))
+    assert "not_found" in view.tab.error_box.content
     view.rows["add_noise"].controls["mode"].value = "uniform"
     view.press("add_noise", "Run")  # a good run clears the error
-    assert not view.error_box.visible and view.session.history[-1].status == "ok"
+    assert not view.tab.error_box.visible and view.session.history[-1].status == "ok"
 
 
 def test_a_step_that_fails_is_shown_with_its_reason(server, store):
@@ -192,7 +192,7 @@ def test_a_step_that_fails_is_shown_with_its_reason(server, store):
     view = make_view(server, store, {"bad": pipeline})
     view.start({})
     view.press("explode", "Run")
-    assert "step_failed" in view.error_box.content and "no board found" in view.error_box.content
+    assert "step_failed" in view.tab.error_box.content and "no board found" in view.tab.error_box.content
     assert "failed" in view.rows["explode"].metrics.content
 
 
@@ -208,7 +208,7 @@ def test_changes_made_over_rest_are_redrawn_on_poll(server, store, view):
     assert view.drawer.drawn["noisy"] is drawn
     store.delete(session.id)
     view.poll()
-    assert f"session {session.id!r} was deleted; press New session" in view.error_box.content
+    assert f"session {session.id!r} was deleted; press New session" in view.tab.error_box.content
 
 
 def test_a_full_store_is_shown_as_a_message_and_evicts_nobody(server):
@@ -216,20 +216,20 @@ def test_a_full_store_is_shown_as_a_message_and_evicts_nobody(server):
     kept = store.create(TOY)
     view = make_view(server, store)
     view.start({})  # no room for the tab's own session: say so, open nothing, keep the other one
-    assert "overloaded" in view.error_box.content and "limit 1" in view.error_box.content
+    assert "overloaded" in view.tab.error_box.content and "limit 1" in view.tab.error_box.content
     assert view.session is None and store.ids() == [kept.id]
-    view._guard(view.new_session_from_gui)
-    assert "retry later" in view.error_box.content and store.ids() == [kept.id]
+    view.guard(view.new_session_from_gui)
+    assert "retry later" in view.tab.error_box.content and store.ids() == [kept.id]
     view.poll()  # a tab without a session polls quietly
 
 
 def test_opening_a_session_by_id(server, store, view):
     other = store.create(TOY, options={"count": 1})
     other.run("add_noise")
-    view.session_id_text.value = other.id
-    view._guard(lambda: view.open_session_id(view.session_id_text.value))
+    view.tab.session_id_text.value = other.id
+    view.guard(lambda: view.open_session_id(view.tab.session_id_text.value))
     assert view.session is other
-    assert other.id in view.header.content
+    assert other.id in view.tab.header.content
     assert view.rows["add_noise"].folder.label == "1. Add noise ✓ done"
     assert "noisy" in view.drawer.drawn
 
@@ -241,7 +241,7 @@ def test_start_opens_the_session_of_the_query(server, store):
     assert view.session is made and len(store) == 1
     missing = make_view(server, store)
     missing.start({"session": "gone"})  # an unknown id: say so, and open a fresh session instead
-    assert "not_found" in missing.error_box.content and missing.session is not None and len(store) == 2
+    assert "not_found" in missing.tab.error_box.content and missing.session is not None and len(store) == 2
 
 
 def slow(images: ImageSet, *, iterations: Annotated[int, Range(1, 100000)] = 100000
@@ -261,15 +261,15 @@ def test_long_step_runs_in_background_and_cancels(server, store):
     view.start({})
     view.press("slow", "Run")
     deadline = time.monotonic() + 30
-    while view._progress_state["iteration"] < 1 and view.worker.is_alive() and time.monotonic() < deadline:
+    while view.progress.state.iteration < 1 and view.worker.is_alive() and time.monotonic() < deadline:
         time.sleep(0.01)  # until the first progress snapshot is on screen
-    view._guard(lambda: view.press("slow", "Run"))  # a second run while one is going: refused
-    assert "still running" in view.error_box.content
-    view._guard(view.cancel)
+    view.guard(lambda: view.press("slow", "Run"))  # a second run while one is going: refused
+    assert "still running" in view.tab.error_box.content
+    view.guard(view.cancel)
     view.wait(30)
     assert not view.worker.is_alive()
     assert view.session.history[-1].status == "cancelled"
-    assert "cancelled" in view.error_box.content and "**cancelled**" in view.progress_text.content
+    assert "cancelled" in view.tab.error_box.content and "**cancelled**" in view.tab.progress_text.content
     assert view.rows["slow"].folder.label.endswith("ready")
 
 
@@ -328,8 +328,8 @@ def test_a_session_of_a_module_not_offered_here_still_opens(server, store):
     view.start({})
     toy = store.create(TOY)
     view.open_session_id(toy.id)
-    assert view.module_dropdown.value == "toy" and "toy" in view.module_dropdown.options
-    assert view.dataset_dropdown.value == "gradients"
+    assert view.tab.module_dropdown.value == "toy" and "toy" in view.tab.module_dropdown.options
+    assert view.tab.dataset_dropdown.value == "gradients"
     assert list(view.rows) == ["add_noise", "mean_intensity", "lift"]
 
 

@@ -123,7 +123,7 @@ def test_a_lesson_that_does_not_load_is_reported(server, store, views, tmp_path)
     view.start({})
     mode = view.lesson_mode
     mode.picker.value = "02-broken"
-    assert "no_such_step" in view.error_box.content and "02-broken/tasks.toml" in view.error_box.content
+    assert "no_such_step" in view.tab.error_box.content and "02-broken/tasks.toml" in view.tab.error_box.content
     assert mode.lesson is None and mode.picker.value == NO_LESSON and view.session.pipeline.name == "toy"
 
 
@@ -140,7 +140,7 @@ def test_the_page_query_opens_a_lesson(server, store, views, lessons):
 
     unknown = make_view(server, store, views, lessons)  # an unknown lesson: said so, the default module opens
     unknown.start({"lesson": "99-nope"})
-    assert "not_found" in unknown.error_box.content and "99-nope" in unknown.error_box.content
+    assert "not_found" in unknown.tab.error_box.content and "99-nope" in unknown.tab.error_box.content
     assert unknown.session.pipeline.name == "toy" and unknown.lesson_mode.lesson is None
 
 
@@ -186,7 +186,7 @@ def test_a_correct_file_runs_in_place_of_the_reference_and_compares_equal(server
     assert "| entry | yours | reference | yours − reference |" in result
     assert "*Your code printed nothing.*" in result
     assert session.state.keys() == before.keys() and all(session.state[k] is before[k] for k in before)
-    assert len(session.history) == history and not view.error_box.visible
+    assert len(session.history) == history and not view.tab.error_box.visible
 
     # "use my code" off: the reference runs again
     mode.rows[HOMOGRAPHIES].use_mine.value = False
@@ -227,44 +227,44 @@ def test_the_starter_fails_with_the_students_message(server, store, views, lesso
     assert "Loaded **`starter.py`**" in mode.code_md.content and mode.rows[HOMOGRAPHIES].use_mine.value
 
     view.press(HOMOGRAPHIES, "Run")  # shown, never raised; the failure is in history, the state untouched
-    assert "step_failed" in view.error_box.content and "not implemented yet" in view.error_box.content
+    assert "step_failed" in view.tab.error_box.content and "not implemented yet" in view.tab.error_box.content
     record = view.session.history[-1]
     assert (record.status, record.replaced) == ("failed", True) and "homographies" not in view.session.state
     assert "Your code failed" in mode.rows[HOMOGRAPHIES].result.content
 
-    view._guard(lambda: mode.compare(HOMOGRAPHIES))
+    view.guard(lambda: mode.compare(HOMOGRAPHIES))
     assert mode.compared[HOMOGRAPHIES].passed is None
     assert "Your step failed" in mode.rows[HOMOGRAPHIES].result.content
     assert "not implemented yet" in mode.rows[HOMOGRAPHIES].result.content
-    assert "not implemented yet" in view.error_box.content
+    assert "not implemented yet" in view.tab.error_box.content
 
 
 def test_broken_files_show_an_error_and_the_viewer_goes_on(server, store, views, lessons):
     view = calibration_view(server, store, views, lessons)
     mode = view.lesson_mode
     upload(mode.upload_button, "broken.py", b"def estimate_homographies(:\n")
-    assert "SyntaxError" in view.error_box.content and "Could not load `broken.py`" in mode.code_md.content
+    assert "SyntaxError" in view.tab.error_box.content and "Could not load `broken.py`" in mode.code_md.content
     assert mode.code is None
 
     upload(mode.upload_button, "notes.txt", b"print('hi')\n")
-    assert "unsupported_media_type" in view.error_box.content and mode.code is None
+    assert "unsupported_media_type" in view.tab.error_box.content and mode.code is None
 
     upload(mode.upload_button, "explodes.py", b"raise RuntimeError('boom at import')\n")
-    assert "could not be loaded" in view.error_box.content and "boom at import" in view.error_box.content
+    assert "could not be loaded" in view.tab.error_box.content and "boom at import" in view.tab.error_box.content
     assert mode.code is None
 
     mode.rows[HOMOGRAPHIES].use_mine.value = True  # on, with no code loaded: a clear message
     view.press(HOMOGRAPHIES, "Run")
-    assert "no code of yours is loaded" in view.error_box.content
-    view._guard(lambda: mode.compare(HOMOGRAPHIES))
-    assert "no code of yours is loaded" in view.error_box.content
+    assert "no code of yours is loaded" in view.tab.error_box.content
+    view.guard(lambda: mode.compare(HOMOGRAPHIES))
+    assert "no code of yours is loaded" in view.tab.error_box.content
 
     upload(mode.upload_button, "solution.py", submission("calibration", "solution.py"))
     upload(mode.upload_button, "broken.py", b"def f(:\n")  # a bad file after a good one keeps the good one
     assert "Still using `solution.py`" in mode.code_md.content and mode.code is not None
     view.press(HOMOGRAPHIES, "Run")
     assert view.session.history[-1].status == "ok" and view.session.history[-1].replaced
-    assert not view.error_box.visible
+    assert not view.tab.error_box.visible
 
 
 def test_closing_the_tab_ends_the_students_sandbox(server, store, views, lessons):
@@ -272,7 +272,7 @@ def test_closing_the_tab_ends_the_students_sandbox(server, store, views, lessons
     view.start({"lesson": "01-calibration"})
     click(view.lesson_mode.starter_button)
     click(view.lesson_mode.rows[HOMOGRAPHIES].compare)  # before its inputs exist: said so
-    assert "missing_input" in view.error_box.content and "corners" in view.error_box.content
+    assert "missing_input" in view.tab.error_box.content and "corners" in view.tab.error_box.content
     assert "Could not compare" in view.lesson_mode.rows[HOMOGRAPHIES].result.content
     sandbox = view.lesson_mode.code.sandbox
     assert sandbox.alive

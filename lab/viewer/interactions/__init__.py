@@ -12,22 +12,33 @@ ways to run a step or restart the dataset). After every redraw the viewer calls
 :meth:`Interaction.update` with the session's state; when the tab shows another session it calls
 :meth:`Interaction.close`.
 
+An interaction reads the session's values through :meth:`InteractionContext.value` (or
+:meth:`InteractionContext.values`) only, by the names its pipeline lists in ``views``
+(``Pipeline.build(views=...)``): a name the pipeline does not list is refused with a clear error,
+and a contract test (``tests/viewer/test_views_contract.py``) checks every name the interaction
+files read against their pipeline's views, and every view against what the steps and datasets
+provide. So renaming a state value in a module fails a test, not a browser. Interactions import no
+other interaction: camera math they share is in :mod:`lab.geometry.camera_views`, drawing in
+:mod:`lab.viewer.drawing`.
+
 Interactions keep their math in pure functions (tested directly) and their GUI wiring thin; a
 failing callback is shown in the tab (``ctx.show_error``), never raised into viser.
 """
 
 from __future__ import annotations
 
+import contextlib
 import importlib
 import importlib.util
 import logging
 import traceback
 from dataclasses import dataclass
-from typing import Any, Callable, ClassVar, Mapping, TypeVar
+from collections.abc import Callable, Iterable, Mapping
+from typing import Any, ClassVar, TypeVar
 
 import numpy as np
 
-from lab.core.errors import LabError
+from lab.core.errors import LabError, UnknownName
 from lab.core.pipeline import Session
 
 log = logging.getLogger("lab.viewer")
@@ -44,13 +55,14 @@ class InteractionContext:
 
     ``folder`` is a GUI folder made for this interaction in the main panel; ``images`` and
     ``plots`` are the tabs of the left media panel. ``run(step, controls)`` runs a step as its Run
-    button would (in the tab's worker thread; errors shown in the tab). ``restart(options, *,
-    run_until=None, params=None, carry=None) -> bool`` opens a new session of the same module and
-    dataset with these dataset options (e.g. a baseline slider on a synthetic rig), then runs every
-    step through ``run_until`` with ``params`` (``{step: controls}``, or a function of the new
-    session returning them; the rest from the step widgets), and hands ``carry`` to the new
-    session's interactions as ``ctx.carried``; it returns False (error shown) when it could not.
-    ``extent()`` is the size of the 3D content, for marker sizes.
+    button would (in the tab's worker thread, with the steps that depend on it when the tab re-runs
+    dependants; errors shown in the tab). ``restart(options, *, run_to=None, params=None, carry=None)
+    -> bool`` opens a new session of the same module and dataset with these dataset options (e.g. a
+    baseline slider on a synthetic rig), then runs what step ``run_to`` needs (the core's plan, as
+    its "Run to here" button) with ``params`` (``{step: controls}``, or a function of the new session
+    returning them; the rest from the step widgets), and hands ``carry`` to the new session's
+    interactions as ``ctx.carried``; it returns False (error shown) when it could not. ``extent()``
+    is the size of the 3D content, for marker sizes. Session values are read with :meth:`value`.
     """
 
     scene: Any
@@ -66,6 +78,27 @@ class InteractionContext:
     extent: Callable[[], float]
     #: What the interactions of the previous session handed over through ``restart(carry=...)``.
     carried: Any = None
+
+    def value(self, name: str, state: Mapping[str, Any] | None = None) -> Any:
+        """State value ``name``: of ``state`` (the copy :meth:`Interaction.update` got) or, without it, of the
+        session now; None while no step has made it.
+
+        ``name`` must be one of the pipeline's ``views`` (the names its interactions may read), else
+        :class:`~lab.core.errors.UnknownName` says so: a renamed value fails here, clearly, and in the
+        contract test, instead of drawing nothing.
+        """
+        views = self.session.pipeline.views
+        if name not in views:
+            module = self.session.pipeline.name
+            raise UnknownName("view", f"the {module} interactions read {name!r}, which pipeline {module!r} "
+                                      f"does not list in its views {sorted(views)}: add it to views= in "
+                                      f"lab.modules.{module}, or read a value the pipeline has")
+        source = self.session.state if state is None else state
+        return source.get(name)
+
+    def values(self, names: Iterable[str], state: Mapping[str, Any] | None = None) -> dict[str, Any]:
+        """:meth:`value` of each of ``names`` (same checks), by name."""
+        return {name: self.value(name, state) for name in names}
 
     def node(self, *parts: str) -> str:
         """A scene node name under this module's root: ``/explore/<module>/<parts...>``."""
@@ -101,10 +134,8 @@ class NamedHandles:
     def drop_exact(self, name: str) -> None:
         old = self.handles.pop(name, None)
         if old is not None:
-            try:
+            with contextlib.suppress(Exception):  # gone with its parent already
                 old.remove()
-            except Exception:  # gone with its parent already
-                pass
 
     def drop(self, prefix: str) -> None:
         for name in [n for n in self.handles if n == prefix or n.startswith(prefix + "/")]:
@@ -120,8 +151,8 @@ class NamedHandles:
 
 class Interaction:
     """Base class of a module's interaction. Subclasses build their GUI in ``__init__`` (the viewer
-    has entered ``ctx.folder`` already: GUI elements added there land in it), redraw in :meth:`update`, and :meth:`track` every handle they add so
-    that :meth:`close` removes it."""
+    has entered ``ctx.folder`` already: GUI elements added there land in it), redraw in
+    :meth:`update`, and :meth:`track` every handle they add so that :meth:`close` removes it."""
 
     #: The label of the interaction's GUI folder.
     title: ClassVar[str] = "Explore"
@@ -147,10 +178,8 @@ class Interaction:
     def close(self) -> None:
         """Remove everything this interaction added."""
         for handle in reversed(self.handles):
-            try:
+            with contextlib.suppress(Exception):  # gone with its parent already
                 handle.remove()
-            except Exception:  # gone with its parent already
-                pass
         self.handles.clear()
 
 

@@ -57,7 +57,7 @@ BASELINE_COLORS = ("#d62728", "#1f77b4", "#2ca02c", "#ff7f0e", "#9467bd", "#8c56
 #: Disparity stages, by the state value that holds them (latest last).
 STAGES: dict[str, str] = {"winner-take-all": "disparity_wta", "sub-pixel": "disparity_subpixel",
                           "final": "disparity"}
-#: Steps run again after a restart with another baseline (everything up to the point cloud).
+#: The step a restart with another baseline runs to (with what it needs: the point cloud).
 RUN_TO = "reconstruct_points"
 #: Previous baselines kept for comparison in the uncertainty plot.
 MAX_PREVIOUS_BASELINES = 5
@@ -941,10 +941,8 @@ class BaselineExplorer(Interaction):
             if self.current is not None:
                 previous = [self.current, *[r for r in previous if not math.isclose(r.baseline, self.current.baseline)]]
             previous = [r for r in previous if not math.isclose(r.baseline, value)][:MAX_PREVIOUS_BASELINES]
-        steps = [s.name for s in session.pipeline.steps]
-        params = {name: p for name in steps[:steps.index(RUN_TO) + 1]
-                  if (p := last_params(list(session.history), name)) is not None}
-        return self.ctx.restart({"baseline": value}, run_until=RUN_TO,
+        params = {name: dict(controls) for name, controls in session.ran_with.items()}  # what the outputs came from
+        return self.ctx.restart({"baseline": value}, run_to=RUN_TO,
                                 params=lambda fresh: chain_params(fresh, params), carry={CARRY_KEY: previous})
 
     # --- redraw ----------------------------------------------------------------------------------------
