@@ -13,11 +13,11 @@ app).
 from __future__ import annotations
 
 import importlib
+from collections.abc import Callable, Iterable, Sequence
 from pathlib import Path
-from typing import Any, Callable, Iterable, Sequence
 
 from fastapi import APIRouter, FastAPI, Request
-from fastapi.responses import FileResponse, HTMLResponse
+from fastapi.responses import FileResponse, HTMLResponse, Response
 from fastapi.staticfiles import StaticFiles
 from fastapi_offline import FastAPIOffline
 
@@ -48,7 +48,8 @@ a 500 means a bug in the lab.
 
 _TAGS = [
     {"name": "modules", "description": "Teaching modules, their steps, controls and datasets."},
-    {"name": "sessions", "description": "Live sessions: create, run steps, stream progress, cancel, reset."},
+    {"name": "sessions",
+     "description": "Live sessions: create, run steps, stream progress, cancel, reset."},
     {"name": "values", "description": "Read and upload state values."},
     {"name": "service", "description": "Health and the landing page."},
 ]
@@ -90,8 +91,8 @@ def create_app(store: SessionStore | None = None, *, modules: Callable[[str], Pi
         raise ValueError("max_upload_bytes must be positive")
     # fastapi-offline serves Swagger UI (v5: renders OpenAPI 3.1) and ReDoc from the package, not a CDN:
     # /docs works on a machine with no internet, as in a classroom lab.
-    app = FastAPIOffline(title="Vision Lab", version=lab.__version__, description=_DESCRIPTION, openapi_tags=_TAGS,
-                         default_response_class=LabJSONResponse)
+    app = FastAPIOffline(title="Vision Lab", version=lab.__version__, description=_DESCRIPTION,
+                         openapi_tags=_TAGS, default_response_class=LabJSONResponse)
     app.state.store = store if store is not None else SessionStore()
     app.state.catalog = ModuleCatalog.of(modules, module_names)
     app.state.runs = RunRegistry()
@@ -112,11 +113,11 @@ def create_app(store: SessionStore | None = None, *, modules: Callable[[str], Pi
         app.include_router(router)
 
     @app.get("/api/health", tags=["service"], summary="Health and server facts",
-             description="`status` is `ok` when the API answers; also the version, live sessions and their caps, "
-                         "the worker pools (`runs`: `heavy`, `light` and `loads`, each with workers, running, "
-                         "queued, max_queued), the served modules and `viewer_url` (null when no viewer runs). "
-                         "Answered in the event loop, never waiting for a worker, so it stays fast while steps "
-                         "run.")
+             description="`status` is `ok` when the API answers; also the version, live sessions and their "
+                         "caps, the worker pools (`runs`: `heavy`, `light` and `loads`, each with workers, "
+                         "running, queued, max_queued), the served modules and `viewer_url` (null when no "
+                         "viewer runs). Answered in the event loop, never waiting for a worker, so it stays "
+                         "fast while steps run.")
     async def health(request: Request) -> LabJSONResponse:
         state = request.app.state
         return LabJSONResponse({"status": "ok", "version": lab.__version__, "sessions": len(state.store),
@@ -126,7 +127,7 @@ def create_app(store: SessionStore | None = None, *, modules: Callable[[str], Pi
                 "max_upload_bytes": state.max_upload_bytes})
 
     @app.get("/", include_in_schema=False)
-    def landing_page() -> Any:
+    def landing_page() -> Response:
         index = STATIC_DIR / "index.html"
         if not index.is_file():  # an install without the static folder still says where to go
             return HTMLResponse("<!doctype html><title>Vision Lab</title><h1>Vision Lab</h1>"

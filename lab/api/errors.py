@@ -12,7 +12,8 @@ from __future__ import annotations
 import json
 import logging
 import math
-from typing import Any
+from collections.abc import Sequence
+from typing import Any, cast
 
 import numpy as np
 from fastapi import FastAPI, Request
@@ -22,7 +23,7 @@ from pydantic import BaseModel, Field
 from starlette.datastructures import Headers
 from starlette.exceptions import HTTPException as StarletteHTTPException
 from starlette.routing import Match
-from starlette.types import ASGIApp, Message, Receive, Scope, Send
+from starlette.types import ASGIApp, ExceptionHandler, Message, Receive, Scope, Send
 
 from lab.core.errors import CapacityExceeded, LabError
 
@@ -60,7 +61,8 @@ class ErrorBody(BaseModel):
 
 
 _DEFAULT_ERROR_TEXT = {
-    400: "The body cannot be parsed (JSON that is not UTF-8, a broken form) or Content-Length is not a number.",
+    400: "The body cannot be parsed (JSON that is not UTF-8, a broken form) or Content-Length is not a "
+         "number.",
     404: "Unknown module, dataset, session, step or value.",
     409: "A step is running, or a value the step reads does not exist yet.",
     413: "The body is too large, or the server has no room for another session.",
@@ -104,7 +106,7 @@ async def lab_error_handler(request: Request, exc: LabError) -> JSONResponse:
     return LabJSONResponse(exc.to_dict(), status_code=exc.status, headers=exc.headers())
 
 
-def _field_of(loc: tuple[Any, ...] | list[Any]) -> str:
+def _field_of(loc: Sequence[Any]) -> str:
     """``("body", "options", "columns")`` -> ``options.columns``; ``("query", "format")`` -> ``format``."""
     parts = [str(p) for p in loc]
     if parts and parts[0] in ("body", "query", "path", "header", "cookie"):
@@ -127,7 +129,8 @@ def _reason_of(error: dict[str, Any]) -> str:
         try:
             json.loads(value)
         except (UnicodeDecodeError, json.JSONDecodeError) as exc:
-            return f"malformed JSON: {exc}; the body must be a JSON object sent with Content-Type: application/json"
+            return (f"malformed JSON: {exc}; the body must be a JSON object sent with "
+                    "Content-Type: application/json")
         return f"{reason}; send the body as JSON with Content-Type: application/json"
     if error.get("type") not in ("missing", "extra_forbidden") and isinstance(value, (str, int, float, bool)):
         text = repr(value)
@@ -154,21 +157,23 @@ async def http_error_handler(request: Request, exc: StarletteHTTPException) -> J
     detail = exc.detail if isinstance(exc.detail, str) else json.dumps(jsonable(exc.detail))
     if exc.status_code == 404 and detail == "Not Found":
         detail = f"no route {request.url.path!r}; the API is described at /docs"
-    if exc.status_code == 400 and isinstance(exc.__cause__, RecursionError):  # FastAPI's json.loads of the body
-        field, detail = "body", ("the JSON body nests arrays and objects too deeply to be read; the lab's bodies "
-                                 "nest a few levels")
+    if exc.status_code == 400 and isinstance(exc.__cause__, RecursionError):  # FastAPI's json.loads
+        field, detail = "body", ("the JSON body nests arrays and objects too deeply to be read; the lab's "
+                                 "bodies nest a few levels")
     headers = dict(getattr(exc, "headers", None) or {})
     if exc.status_code == 405:
         detail = f"{request.method} is not allowed on {request.url.path!r}; see /docs"
         headers["Allow"] = ", ".join(allowed_methods(request))
-    return LabJSONResponse(error_body(kind, field, detail), status_code=exc.status_code, headers=headers or None)
+    return LabJSONResponse(error_body(kind, field, detail), status_code=exc.status_code,
+                           headers=headers or None)
 
 
 _METHODS = ("GET", "HEAD", "POST", "PUT", "PATCH", "DELETE")
 
 
 def allowed_methods(request: Request) -> list[str]:
-    """Every method some route answers on the request's path: a 405's ``Allow`` (Starlette names one route's)."""
+    """Every method some route answers on the request's path: a 405's ``Allow`` (Starlette names one
+    route's)."""
     routes = request.app.router.routes
     return [method for method in _METHODS
             if any(route.matches({**request.scope, "method": method})[0] is Match.FULL for route in routes)]
@@ -183,9 +188,11 @@ async def unexpected_error_handler(request: Request, exc: Exception) -> JSONResp
 
 
 def register_error_handlers(app: FastAPI) -> None:
-    app.add_exception_handler(LabError, lab_error_handler)
-    app.add_exception_handler(RequestValidationError, validation_error_handler)
-    app.add_exception_handler(StarletteHTTPException, http_error_handler)
+    # Starlette types a handler as taking any Exception, though it passes each handler the class it is
+    # registered for (Callable parameters are contravariant: Kludex/starlette#2417); the casts say so.
+    app.add_exception_handler(LabError, cast(ExceptionHandler, lab_error_handler))
+    app.add_exception_handler(RequestValidationError, cast(ExceptionHandler, validation_error_handler))
+    app.add_exception_handler(StarletteHTTPException, cast(ExceptionHandler, http_error_handler))
     app.add_exception_handler(Exception, unexpected_error_handler)
 
 

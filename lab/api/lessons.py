@@ -1,12 +1,13 @@
-"""``/api/lessons`` and ``/api/submissions``: lesson texts and starters, uploads graded in the background.
+"""``/api/lessons`` and ``/api/submissions``: lesson texts and starters, uploads graded in the
+background.
 
-    GET  /api/lessons                         the lessons (id, title, module, points, tasks)
-    GET  /api/lessons/{id}                    one lesson: its text, tasks (signatures, checks) and starter file
-    GET  /api/lessons/{id}/starter.py         the starter file itself
-    POST /api/lessons/{id}/submissions        upload a .py (multipart field ``file``) -> 202 {id, status, url}
-    GET  /api/submissions/{id}                status (queued, running, done, error) and results.json (no seeds;
-                                              ?view=instructor adds them, with the instructor's token)
-    GET  /api/lessons/{id}/submissions        every submission of a lesson, for an instructor
+    GET  /api/lessons                     the lessons (id, title, module, points, tasks)
+    GET  /api/lessons/{id}                one lesson: its text, tasks (signatures, checks) and starter file
+    GET  /api/lessons/{id}/starter.py     the starter file itself
+    POST /api/lessons/{id}/submissions    upload a .py (multipart field ``file``) -> 202 {id, status, url}
+    GET  /api/submissions/{id}            status (queued, running, done, error) and results.json (no seeds;
+                                          ?view=instructor adds them, with the instructor's token)
+    GET  /api/lessons/{id}/submissions    every submission of a lesson, for an instructor
 
 Grading never runs in a request: an upload is committed to the database and a worker of the
 :class:`~lab.lessons.service.LessonService` grades it. The service comes from
@@ -24,7 +25,8 @@ import os
 import subprocess
 import sys
 import threading
-from typing import Annotated, Any, AsyncIterator, Literal
+from collections.abc import AsyncIterator
+from typing import Annotated, Any, Literal
 
 from fastapi import APIRouter, FastAPI, File, Form, Path, Query, Request, UploadFile
 from fastapi.concurrency import run_in_threadpool
@@ -51,7 +53,8 @@ class Forbidden(LabError):
 
 
 def _database_exists() -> bool:
-    """A database is configured, or the default SQLite file exists (so there may be gradings to requeue)."""
+    """A database is configured, or the default SQLite file exists (so there may be gradings to
+    requeue)."""
     url = default_database_url()
     if os.environ.get("VISION_LAB_DATABASE_URL") or not url.startswith("sqlite:///"):
         return True
@@ -60,7 +63,8 @@ def _database_exists() -> bool:
 
 @contextlib.asynccontextmanager
 async def lessons_lifespan(app: FastAPI) -> AsyncIterator[None]:
-    """Start the lesson service with the app (requeue interrupted gradings, start the workers), stop it after.
+    """Start the lesson service with the app (requeue interrupted gradings, start the workers), stop it
+    after.
 
     Without ``app.state.lesson_service`` the service is built from the environment; when no database
     is configured and the default SQLite file does not exist yet, nothing can have been interrupted,
@@ -90,7 +94,8 @@ SubmissionId = Annotated[str, Path(description="The id returned by POST /api/les
 
 
 def get_lesson_service(request: Request) -> LessonService:
-    """The app's lesson service (built from the environment and started on first use if the lifespan did not run)."""
+    """The app's lesson service (built from the environment and started on first use if the lifespan
+    did not run)."""
     service = getattr(request.app.state, "lesson_service", None)
     if service is None:
         service = LessonService.from_env()
@@ -108,7 +113,8 @@ def _summary_text(text: str) -> str:
 
 
 @router.get("/lessons", summary="List the lessons",
-            description="Every lesson: id, title, module, points, a summary and its tasks (step names and points).")
+            description="Every lesson: id, title, module, points, a summary and its tasks (step names and "
+                        "points).")
 def list_lessons(request: Request) -> LabJSONResponse:
     service = get_lesson_service(request)
     listed = []
@@ -116,16 +122,18 @@ def list_lessons(request: Request) -> LabJSONResponse:
         try:
             lesson = service.catalog.get(lesson_id)
         except LabError as exc:  # a broken lesson is listed with the reason, never takes the list down
-            listed.append({"id": lesson_id, "title": lesson_id, "available": False, "reason": str(exc), "tasks": []})
+            listed.append({"id": lesson_id, "title": lesson_id, "available": False, "reason": str(exc),
+                           "tasks": []})
             continue
         listed.append({**lesson.summary(), "summary": _summary_text(lesson.text), "available": True,
-                       "url": f"/api/lessons/{lesson.id}", "starter_url": f"/api/lessons/{lesson.id}/starter.py"})
+                       "url": f"/api/lessons/{lesson.id}",
+                       "starter_url": f"/api/lessons/{lesson.id}/starter.py"})
     return LabJSONResponse(listed)
 
 
 @router.get("/lessons/{lesson_id}", summary="Describe one lesson",
-            description="The lesson text (Markdown), its tasks (the step, its signature, points, the checks) and the "
-                        "starter file a student fills in. Check data and seeds stay hidden.")
+            description="The lesson text (Markdown), its tasks (the step, its signature, points, the checks) "
+                        "and the starter file a student fills in. Check data and seeds stay hidden.")
 def describe_lesson(request: Request, lesson_id: LessonId) -> LabJSONResponse:
     lesson = get_lesson_service(request).catalog.get(lesson_id)
     return LabJSONResponse({**lesson.describe(), "summary": _summary_text(lesson.text),
@@ -139,15 +147,17 @@ class PythonSourceResponse(PlainTextResponse):
     media_type = "text/x-python"
 
 
-@router.get("/lessons/{lesson_id}/starter.py", summary="Download the starter file", response_class=PythonSourceResponse)
+@router.get("/lessons/{lesson_id}/starter.py", summary="Download the starter file",
+            response_class=PythonSourceResponse)
 def starter_file(request: Request, lesson_id: LessonId) -> PythonSourceResponse:
     lesson = get_lesson_service(request).catalog.get(lesson_id)
-    return PythonSourceResponse(lesson.starter,
-                                headers={"Content-Disposition": f'attachment; filename="{lesson.id}-starter.py"'})
+    disposition = f'attachment; filename="{lesson.id}-starter.py"'
+    return PythonSourceResponse(lesson.starter, headers={"Content-Disposition": disposition})
 
 
 def check_upload(payload: bytes, filename: str, *, limit: int) -> str:
-    """The uploaded file as text, or a 4xx error: too large (413), not Python text (415), not parsable (422)."""
+    """The uploaded file as text, or a 4xx error: too large (413), not Python text (415), not parsable
+    (422)."""
     if len(payload) > limit:
         raise CapacityExceeded("file", f"the file is larger than {limit} bytes, the most a submission may be")
     if not filename.lower().endswith(".py"):
@@ -159,8 +169,8 @@ def check_upload(payload: bytes, filename: str, *, limit: int) -> str:
     try:
         text = payload.decode("utf-8-sig")
     except UnicodeDecodeError as exc:
-        raise UnsupportedUpload("file", f"the file is not UTF-8 text (byte {exc.start}): save it as UTF-8 Python "
-                                        "source") from None
+        raise UnsupportedUpload("file", f"the file is not UTF-8 text (byte {exc.start}): save it as UTF-8 "
+                                        "Python source") from None
     check_syntax(text, filename)
     return text
 
@@ -188,7 +198,8 @@ _PARSES = threading.BoundedSemaphore(2)
 
 
 def check_syntax(text: str, filename: str) -> None:
-    """Parse ``text`` as Python (``ast.parse``) in a child process; InvalidValue (422) on ``file`` if it does not parse.
+    """Parse ``text`` as Python (``ast.parse``) in a child process; InvalidValue (422) on ``file`` if it
+    does not parse.
 
     The child (``python -I``, memory and CPU limited, two at a time) keeps the server's process
     and its event loop free while a large file parses (the parser holds the GIL for its whole
@@ -198,8 +209,9 @@ def check_syntax(text: str, filename: str) -> None:
     script = _PARSE_SCRIPT % (PARSE_MEMORY_BYTES, PARSE_MEMORY_BYTES, PARSE_SECONDS, PARSE_SECONDS)
     try:
         with _PARSES:
-            done = subprocess.run([sys.executable, "-I", "-S", "-c", script, filename], input=text.encode("utf-8"),
-                                  capture_output=True, timeout=2 * PARSE_SECONDS, check=False)
+            done = subprocess.run([sys.executable, "-I", "-S", "-c", script, filename],
+                                  input=text.encode("utf-8"), capture_output=True, timeout=2 * PARSE_SECONDS,
+                                  check=False)
         outcome = json.loads(done.stdout or b"{}")
     except (subprocess.TimeoutExpired, ValueError):  # a child stopped by its limits writes nothing parsable
         outcome = {}
@@ -214,24 +226,29 @@ def check_syntax(text: str, filename: str) -> None:
 
 
 @router.post("/lessons/{lesson_id}/submissions", status_code=202, summary="Submit a file for grading",
-             description="Upload the student's Python file (multipart field `file`, optional form field `student`). "
-                         "Answers 202 with the submission's id at once; grading runs in the background. Poll "
-                         "GET /api/submissions/{id} for the result (Gradescope's results.json).",
-             responses=error_responses({413: "The file is too large.", 415: "The file is not Python source text.",
+             description="Upload the student's Python file (multipart field `file`, optional form field "
+                         "`student`). Answers 202 with the submission's id at once; grading runs in the "
+                         "background. Poll GET /api/submissions/{id} for the result (Gradescope's "
+                         "results.json).",
+             responses=error_responses({413: "The file is too large.",
+                                        415: "The file is not Python source text.",
                                         422: "The file does not parse as Python."}),
              openapi_extra={"requestBody": {"content": {"multipart/form-data": {"encoding": {"file": {
                  "contentType": "text/x-python",
                  "headers": {"Content-Disposition": {
                      "description": "The file part's name ends in `.py` (415 otherwise).",
-                     "schema": {"type": "string", "example": 'form-data; name="file"; filename="solution.py"'}}}}}}}}})
+                     "schema": {"type": "string",
+                                "example": 'form-data; name="file"; filename="solution.py"'}}}}}}}}})
 async def submit(request: Request, lesson_id: LessonId,
                  file: Annotated[UploadFile, File(description="The student's .py file.")],
-                 student: Annotated[str, Form(max_length=200, description="Who submits (shown to the instructor).")] = ""
+                 student: Annotated[str, Form(max_length=200,
+                                              description="Who submits (shown to the instructor).")] = ""
                  ) -> LabJSONResponse:
     service = get_lesson_service(request)
     lesson = service.catalog.get(lesson_id)
     payload = await file.read(service.max_submission_bytes + 1)
-    text = await run_in_threadpool(check_upload, payload, file.filename or "", limit=service.max_submission_bytes)
+    text = await run_in_threadpool(check_upload, payload, file.filename or "",
+                                   limit=service.max_submission_bytes)
     submission_id = service.submit(lesson.id, file.filename or "submission.py", text, student=student)
     return LabJSONResponse({"id": submission_id, "lesson": lesson.id, "status": "queued",
                             "url": f"/api/submissions/{submission_id}"}, status_code=202)
@@ -251,15 +268,16 @@ def student_view(submission: dict[str, Any]) -> dict[str, Any]:
 
 
 @router.get("/submissions/{submission_id}", summary="A submission's status and results",
-            description="`status` is `queued`, `running`, `done` (with `results`: Gradescope's results.json) or "
-                        "`error` (grading itself failed; `error` says why). The default student view leaves out "
-                        "the check data's seeds (`results.extra_data.seeds`); `?view=instructor` includes them "
-                        "and needs `Authorization: Bearer <VISION_LAB_INSTRUCTOR_TOKEN>` when that is set.",
+            description="`status` is `queued`, `running`, `done` (with `results`: Gradescope's results.json) "
+                        "or `error` (grading itself failed; `error` says why). The default student view "
+                        "leaves out the check data's seeds (`results.extra_data.seeds`); `?view=instructor` "
+                        "includes them and needs `Authorization: Bearer <VISION_LAB_INSTRUCTOR_TOKEN>` when "
+                        "that is set.",
             responses=error_responses({403: "view=instructor without the instructor token."}))
 def get_submission(request: Request, submission_id: SubmissionId,
                    view: Annotated[Literal["student", "instructor"],
-                                   Query(description="`instructor` adds the seeds of the check data.")] = "student"
-                   ) -> LabJSONResponse:
+                                   Query(description="`instructor` adds the seeds of the check data.")
+                                   ] = "student") -> LabJSONResponse:
     service = get_lesson_service(request)
     if view == "instructor":
         _check_instructor(request, service)
@@ -271,8 +289,9 @@ def get_submission(request: Request, submission_id: SubmissionId,
 
 
 @router.get("/lessons/{lesson_id}/submissions", summary="A lesson's submissions (instructor)",
-            description="Every submission of the lesson, newest first, with status and score (no results or "
-                        "source). Needs `Authorization: Bearer <VISION_LAB_INSTRUCTOR_TOKEN>` when that is set.",
+            description="Every submission of the lesson, newest first, with status and score (no results "
+                        "or source). Needs `Authorization: Bearer <VISION_LAB_INSTRUCTOR_TOKEN>` when that "
+                        "is set.",
             responses=error_responses({403: "Instructor token missing or wrong."}))
 def list_submissions(request: Request, lesson_id: LessonId) -> LabJSONResponse:
     service = get_lesson_service(request)
@@ -303,8 +322,9 @@ def build_app(service: LessonService | None = None) -> FastAPI:
 
 
 def standalone_app() -> FastAPI:
-    """``uvicorn --factory lab.api.lessons:standalone_app``: the lesson routes configured from the environment."""
+    """``uvicorn --factory lab.api.lessons:standalone_app``: the lesson routes configured from the
+    environment."""
     return build_app(LessonService.from_env())
 
 
-__all__ = ["router", "build_app", "standalone_app", "get_lesson_service", "lessons_lifespan", "check_upload"]
+__all__ = ["build_app", "check_upload", "get_lesson_service", "lessons_lifespan", "router", "standalone_app"]

@@ -21,7 +21,8 @@ def module_overview(pipeline: Pipeline) -> dict[str, Any]:
         "name": pipeline.name, "title": pipeline.title, "summary": pipeline.summary, "available": True,
         "steps": [{"name": s.name, "title": s.title, "summary": s.summary, "long": s.is_generator}
                   for s in pipeline.steps],
-        "datasets": [{"name": d.name, "summary": d.summary, "takes_path": d.takes_path} for d in pipeline.datasets],
+        "datasets": [{"name": d.name, "summary": d.summary, "takes_path": d.takes_path}
+                     for d in pipeline.datasets],
     }
 
 
@@ -52,12 +53,13 @@ def list_modules(catalog: CatalogDep) -> LabJSONResponse:
 
 
 @router.get("/{module}", summary="Describe one module",
-            description="The module's steps in order (inputs, controls as a JSON Schema of the request body of "
-                        "`POST /api/sessions/{id}/steps/{step}`, outputs, metrics, whether the step is long and "
-                        "streams progress), its datasets with the JSON Schema of their options, and the values a "
-                        "client may upload.")
+            description="The module's steps in order (inputs, controls as a JSON Schema of the request body "
+                        "of `POST /api/sessions/{id}/steps/{step}`, outputs, metrics, whether the step is "
+                        "long and streams progress), its datasets with the JSON Schema of their options, and "
+                        "the values a client may upload.")
 def describe_module(catalog: CatalogDep,
-                    module: Annotated[str, Path(description="Module name, e.g. `calibration`.")]) -> LabJSONResponse:
+                    module: Annotated[str, Path(description="Module name, e.g. `calibration`.")]
+                    ) -> LabJSONResponse:
     pipeline = catalog.get(module)
     described = pipeline.describe()
     described["evaluated_steps"] = sorted(pipeline.evaluations)

@@ -13,7 +13,8 @@
 
 from __future__ import annotations
 
-from typing import Any, Sequence
+from collections.abc import Sequence
+from typing import Any
 
 from fastapi import FastAPI
 
@@ -22,7 +23,8 @@ JSON = "application/json"
 #: (method, path, status) of a response -> [(method, path) of the target, {parameter: runtime expression}]:
 #: the links every served document gets (targets missing from the document are left out).
 LINKS: dict[tuple[str, str, str], list[tuple[tuple[str, str], dict[str, str]]]] = {
-    ("get", "/api/modules", "200"): [(("get", "/api/modules/{module}"), {"module": "$response.body#/0/name"})],
+    ("get", "/api/modules", "200"): [
+        (("get", "/api/modules/{module}"), {"module": "$response.body#/0/name"})],
     ("get", "/api/lessons", "200"): [
         (("get", "/api/lessons/{lesson_id}"), {"lesson_id": "$response.body#/0/id"}),
         (("get", "/api/lessons/{lesson_id}/starter.py"), {"lesson_id": "$response.body#/0/id"}),
@@ -43,7 +45,9 @@ def install_openapi(app: FastAPI, *, module_names: Sequence[str]) -> None:
 
     def openapi() -> dict[str, Any]:
         if app.openapi_schema is None:
-            refine(build(), module_names)
+            document = build()  # also stored in app.openapi_schema, so refined once
+            refine(document, module_names)
+            return document
         return app.openapi_schema
 
     app.openapi = openapi  # type: ignore[method-assign]
@@ -99,6 +103,7 @@ def add_links(document: dict[str, Any]) -> None:
         for target, parameters in targets:
             operation = operations.get(target)
             if operation is not None and operation.get("operationId"):
-                found[operation["operationId"]] = {"operationId": operation["operationId"], "parameters": parameters}
+                found[operation["operationId"]] = {"operationId": operation["operationId"],
+                                                   "parameters": parameters}
         if found:
             source["responses"][status].setdefault("links", {}).update(found)

@@ -55,7 +55,8 @@ CAMERA_MATRICES = frozenset({"K", "K_init"})
 
 
 def _shape_text(shape: tuple[int | None, ...]) -> str:
-    return "(" + ", ".join("N" if s is None else str(s) for s in shape) + ("," if len(shape) == 1 else "") + ")"
+    comma = "," if len(shape) == 1 else ""
+    return "(" + ", ".join("N" if s is None else str(s) for s in shape) + comma + ")"
 
 
 def check_known_value(name: str, value: Any) -> None:
@@ -68,7 +69,8 @@ def check_known_value(name: str, value: Any) -> None:
         raise InvalidValue(name, "contains NaN or infinite entries")
     shape = KNOWN_SHAPES.get(name)
     if shape is not None and (value.ndim != len(shape)
-                              or any(s is not None and s != a for s, a in zip(shape, value.shape))):
+                              or any(s is not None and s != a  # strict: ndim was compared first
+                                     for s, a in zip(shape, value.shape, strict=True))):
         raise InvalidValue(name, f"expected shape {_shape_text(shape)}, got {tuple(value.shape)}")
     if name in CAMERA_MATRICES:
         K = value.astype(np.float64)
@@ -76,9 +78,11 @@ def check_known_value(name: str, value: Any) -> None:
         if abs(K[2, 2] - 1.0) > 1e-6:
             raise InvalidValue(name, f"a camera matrix has K[2, 2] = 1, got {K[2, 2]:g}")
         if max(abs(K[1, 0]), abs(K[2, 0]), abs(K[2, 1])) > tolerance:
-            raise InvalidValue(name, "a camera matrix is upper triangular: K[1, 0], K[2, 0] and K[2, 1] must be 0")
+            raise InvalidValue(name, "a camera matrix is upper triangular: K[1, 0], K[2, 0] and K[2, 1] "
+                                     "must be 0")
         if K[0, 0] <= 0 or K[1, 1] <= 0:
-            raise InvalidValue(name, f"focal lengths K[0, 0] and K[1, 1] must be positive, got {K[0, 0]:g} and {K[1, 1]:g}")
+            raise InvalidValue(name, "focal lengths K[0, 0] and K[1, 1] must be positive, "
+                                     f"got {K[0, 0]:g} and {K[1, 1]:g}")
 
 
 def select_index(value: Any, index: int, name: str) -> Any:
@@ -119,17 +123,21 @@ _SUFFIX_MEDIA = {"npy": "application/x-npy", "png": "image/png", "ply": "applica
             responses={200: {"content": {"application/json": {}, "image/png": {}, "application/x-npy": {},
                                          "application/ply": {}},
                              "description": "The value in the asked format."},
-                       **error_responses({404: "Unknown session or value (the reason names the step that makes it).",
-                                          422: "The value has no such format, a bad index, or more numbers than "
-                                               "format=json may hold (read it as npy or png)."})},
-            description="The value in `format`: `json` (the typed value's JSON, the same shape an upload accepts), "
-                        "`npy` (its primary array: an image's pixels, points' xy, a cloud's xyz, cameras' [R|t]), "
-                        "`png` (images, image sets and 2D arrays), `ply` (point clouds and meshes). A `json` answer "
-                        "holds at most `lab.core.budgets.MAX_JSON_NUMBERS` numbers (about a million); larger values "
-                        "are refused (422, field `format`) and read as `npy` or `png`, or one view with `index`.")
+                       **error_responses({404: "Unknown session or value (the reason names the step that "
+                                               "makes it).",
+                                          422: "The value has no such format, a bad index, or more numbers "
+                                               "than format=json may hold (read it as npy or png)."})},
+            description="The value in `format`: `json` (the typed value's JSON, the same shape an upload "
+                        "accepts), `npy` (its primary array: an image's pixels, points' xy, a cloud's xyz, "
+                        "cameras' [R|t]), `png` (images, image sets and 2D arrays), `ply` (point clouds and "
+                        "meshes). A `json` answer holds at most `lab.core.budgets.MAX_JSON_NUMBERS` numbers "
+                        "(about a million); larger values are refused (422, field `format`) and read as "
+                        "`npy` or `png`, or one view with `index`.")
 async def read_value(session: SessionDep, name: ValueName,
-                     format: Annotated[Literal["json", "npy", "png", "ply"], Query(description="Encoding.")] = "json",
-                     index: Annotated[int | None, Query(ge=0, description="Pick one view / camera / row.")] = None
+                     format: Annotated[Literal["json", "npy", "png", "ply"],
+                                       Query(description="Encoding.")] = "json",
+                     index: Annotated[int | None,
+                                      Query(ge=0, description="Pick one view / camera / row.")] = None
                      ) -> Response:
     value = session.get(name)
     if index is not None:
@@ -139,9 +147,10 @@ async def read_value(session: SessionDep, name: ValueName,
 
         def render() -> bytes:
             try:
-                return LabJSONResponse(codecs.to_json(value)).body
+                return bytes(LabJSONResponse(codecs.to_json(value)).body)  # render() gives bytes
             except (TypeError, ValueError) as exc:
-                raise InvalidValue("format", f"{name!r} ({type(value).__name__}) has no JSON form: {exc}") from None
+                raise InvalidValue("format", f"{name!r} ({type(value).__name__}) has no JSON form: "
+                                             f"{exc}") from None
 
         return Response(await run_in_threadpool(render), media_type="application/json")
     payload = await run_in_threadpool(codecs.encode, value, format, name=name)
@@ -180,19 +189,22 @@ async def _read_files(request: Request, filename: str | None) -> list[tuple[byte
         finally:
             await form.close()
         if not files:
-            raise InvalidValue("file", "the multipart body has no file part (send the file as form field `file`)")
+            raise InvalidValue("file", "the multipart body has no file part (send the file as form field "
+                                       "`file`)")
         for payload, name, _ in files:
             if not payload:
                 raise InvalidValue("file", f"the uploaded file {name!r} is empty")
         return files
     payload = await request.body()
     if not payload:
-        raise InvalidValue("body", "the upload is empty: send the file as the request body or a multipart form")
+        raise InvalidValue("body", "the upload is empty: send the file as the request body or a multipart "
+                                   "form")
     return [(payload, filename or _sniffed_name(payload), content_type)]
 
 
 def _check_image_pixels(files: list[tuple[bytes, str, str]], name: str) -> None:
-    """Refuse, from the headers alone, an upload whose image files exceed the per-image or per-upload budget."""
+    """Refuse, from the headers alone, an upload whose image files exceed the per-image or per-upload
+    budget."""
     total = 0
     for payload, filename, content_type in files:
         if (filename or "").lower().endswith(".json") or "json" in (content_type or ""):
@@ -227,9 +239,10 @@ def _decode(files: list[tuple[bytes, str, str]], annotation: Any, name: str) -> 
 @router.put("/{session_id}/values/{name}", summary="Upload an input value",
             responses=error_responses({404: "Unknown session, or a value no step of the module reads.",
                                        409: "A step is running.",
-                                       413: "The body is over the upload limit, or an image has more pixels than "
-                                            "the budget (read from its header, before decoding).",
-                                       422: "Wrong type, shape or dtype, not an image, malformed JSON/NPY/PLY."}),
+                                       413: "The body is over the upload limit, or an image has more pixels "
+                                            "than the budget (read from its header, before decoding).",
+                                       422: "Wrong type, shape or dtype, not an image, malformed "
+                                            "JSON/NPY/PLY."}),
             openapi_extra={"requestBody": {"required": True, "content": {
                 "application/octet-stream": {"schema": {"type": "string", "format": "binary"}},
                 "image/png": {"schema": {"type": "string", "format": "binary"}},
@@ -237,17 +250,20 @@ def _decode(files: list[tuple[bytes, str, str]], annotation: Any, name: str) -> 
                 "application/json": {"schema": {}},
                 "multipart/form-data": {"schema": {"type": "object", "properties": {
                     "file": {"type": "string", "format": "binary"}}}}}}},
-            description="Replace a value that some step reads (its expected type is listed under `uploadable` in "
-                        "GET /api/modules/{module}): an image file for an Image or ImageSet (`?append=true` adds a "
-                        "view to an ImageSet), JSON or NPY for arrays and typed values (the JSON that format=json "
-                        "returns), PLY for point clouds and meshes. Steps downstream of it are invalidated; the "
-                        "answer lists them. Replacing a value that comes from the dataset (no step makes it, e.g. "
-                        "the photos) drops the dataset's ground truth, which no longer describes the data. On any "
-                        "error the session is unchanged.")
+            description="Replace a value that some step reads (its expected type is listed under "
+                        "`uploadable` in GET /api/modules/{module}): an image file for an Image or ImageSet "
+                        "(`?append=true` adds a view to an ImageSet), JSON or NPY for arrays and typed "
+                        "values (the JSON that format=json returns), PLY for point clouds and meshes. Steps "
+                        "downstream of it are invalidated; the answer lists them. Replacing a value that "
+                        "comes from the dataset (no step makes it, e.g. the photos) drops the dataset's "
+                        "ground truth, which no longer describes the data. On any error the session is "
+                        "unchanged.")
 async def upload_value(request: Request, session: SessionDep, name: ValueName,
-                       append: Annotated[bool, Query(description="Add the image(s) as new views of an ImageSet.")] = False,
-                       filename: Annotated[str | None, Query(description="File name of a raw-body upload (names "
-                                                                         "the view; its suffix picks the decoder).")] = None
+                       append: Annotated[bool, Query(description="Add the image(s) as new views of an "
+                                                                 "ImageSet.")] = False,
+                       filename: Annotated[str | None, Query(description="File name of a raw-body upload "
+                                                                         "(names the view; its suffix picks "
+                                                                         "the decoder).")] = None
                        ) -> LabJSONResponse:
     pipeline = session.pipeline
     readers = [spec.name for spec in pipeline.steps if name in spec.reads]
@@ -258,7 +274,8 @@ async def upload_value(request: Request, session: SessionDep, name: ValueName,
         raise UnknownName("value", f"{reason}; uploadable values are {uploadable_names(pipeline)}")
     annotation = pipeline.input_annotation(name)
     if append and _base_type(annotation) is not ImageSet:
-        raise InvalidValue("append", f"only image sets take ?append=true; {name!r} is {type_name(annotation)}")
+        raise InvalidValue("append", "only image sets take ?append=true; "
+                                     f"{name!r} is {type_name(annotation)}")
     check_idle(session, request.app.state.runs.monitor(session))
     files = await _read_files(request, filename)
     value = await run_in_threadpool(_decode, files, annotation, name)

@@ -15,9 +15,9 @@ import os
 import threading
 import time
 from collections import Counter, OrderedDict
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any, Literal
-from collections.abc import Callable
 
 from lab.core.errors import CapacityExceeded, Forbidden, RetryLater, TooManyRequests, UnknownName
 from lab.core.pipeline import DatasetSpec, Pipeline, Session, open_session
