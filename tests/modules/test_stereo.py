@@ -17,11 +17,12 @@ from lab.core import (Cameras, Curve, Image, InvalidControl, InvalidValue, LabEr
                       open_session)
 from lab.geometry.rectification import StereoCalibration, rectify_pixels, stereo_rectify
 from lab.modules import MODULES, get_pipeline
-from lab.modules.stereo import (COSTS, PIPELINE, DenseReconstruction, aggregate_costs, colorize_disparity,
-                                cost_curves, cost_volume, depth_from_disparity, disparity_errors, error_map,
-                                evaluate_rectification, fill_holes, filter_disparity, left_right_check,
-                                motorcycle, reconstruct_points, rectify_pair, refine_subpixel, remove_peaks,
-                                row_misalignment, synthetic, volume_curve, winner_take_all)
+from lab.modules.stereo import (COSTS, PIPELINE, VIEWS, DenseReconstruction, aggregate_costs,
+                                colorize_disparity, cost_curves, cost_volume, depth_from_disparity,
+                                disparity_errors, error_map, evaluate_rectification, fill_holes,
+                                filter_disparity, left_right_check, motorcycle, reconstruct_points,
+                                rectify_pair, refine_subpixel, remove_peaks, row_misalignment, synthetic,
+                                volume_curve, winner_take_all)
 
 RNG = np.random.default_rng(5)
 STEPS = [spec.name for spec in PIPELINE.steps]
@@ -329,6 +330,28 @@ def test_pipeline_is_registered_with_typed_steps():
     assert PIPELINE.step("aggregate_costs").control("paths").coerce("4") == 4
     assert set(PIPELINE.step("reconstruct_points").writes) == {"depth", "depth_uncertainty", "points3d",
                                                                 "cameras"}
+
+
+def test_every_name_the_viewer_reads_is_a_view_made_by_a_step_or_a_dataset():
+    """PIPELINE.views lists what lab/viewer/interactions/stereo.py reads from a session by name, and each
+    is written by a step or loaded by a dataset: a rename fails here, not in a browser."""
+    import re
+    from pathlib import Path
+
+    from lab.viewer.interactions import stereo as interactions
+
+    made = {name for spec in PIPELINE.steps for name in spec.writes}
+    made |= set(PIPELINE.dataset("motorcycle").load({"downsample": 4}).state)
+    made |= set(PIPELINE.dataset("synthetic").load({"width": 64, "height": 48, "rectified": False}).state)
+    assert PIPELINE.views == frozenset(VIEWS)
+    assert set(VIEWS) <= made, sorted(set(VIEWS) - made)
+    source = Path(interactions.__file__).read_text()
+    read = set(re.findall(r'state\.get\("(\w+)"', source)) | set(re.findall(r'state\["(\w+)"\]', source))
+    read |= set(interactions.STAGES.values())
+    for names in re.findall(r"for n in \(([^)]*)\)", source):  # the keys that tell a state change
+        read |= set(re.findall(r'"(\w+)"', names))
+    assert {"left_raw", "calibration", "cost_volume", "aggregated_cost", "disparity"} <= read  # it scans
+    assert read <= PIPELINE.views, sorted(read - PIPELINE.views)
 
 
 @pytest.fixture(scope="module")
