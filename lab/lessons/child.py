@@ -1,4 +1,5 @@
-"""The sandboxed child process that runs a student's code (the parent side is :mod:`lab.lessons.sandbox`).
+"""The sandboxed child process that runs a student's code (the parent side is
+:mod:`lab.lessons.sandbox`).
 
 Started as ``python -I -c "...main()" REQUEST_FD RESPONSE_FD`` inside the operating-system sandbox of
 :mod:`lab.lessons.isolation` (its own namespaces, a read-only root holding only the Python
@@ -31,9 +32,11 @@ This module is imported by the parent too (for the framing helpers); it imports 
 
 from __future__ import annotations
 
+import contextlib
 import io
 import os
 import sys
+from typing import Any
 
 from lab.lessons.wire import FRAME as HEADER
 from lab.lessons.wire import WireError, decode, encode, frame
@@ -98,7 +101,8 @@ class CappedText(io.TextIOBase):
         return len(text)
 
     def take(self) -> str:
-        """What was written since the last call, and how many characters were dropped (the caller reads ``last_dropped``)."""
+        """What was written since the last call, and how many characters were dropped (the caller reads
+        ``last_dropped``)."""
         text = "".join(self.parts)
         if self.dropped:
             text += f"\n... ({self.dropped} more characters not kept)"
@@ -119,16 +123,19 @@ _BLOCKED_EVENTS = {
     "socket.__new__": "opening a network socket", "socket.connect": "connecting to the network",
     "socket.bind": "binding a network port", "socket.getaddrinfo": "looking up a host name",
     "socket.gethostbyname": "looking up a host name", "socket.sendto": "sending over the network",
-    "ctypes.dlopen": "loading a native library with ctypes", "ctypes.dlsym": "calling native code with ctypes",
-    "ctypes.call_function": "calling native code with ctypes", "ctypes.cdata": "reading raw memory with ctypes",
+    "ctypes.dlopen": "loading a native library with ctypes",
+    "ctypes.dlsym": "calling native code with ctypes",
+    "ctypes.call_function": "calling native code with ctypes",
+    "ctypes.cdata": "reading raw memory with ctypes",
     "sys.remote_exec": "attaching to a process", "os.chroot": "changing the root directory",
 }
 
 # Events whose first argument is a path the code may only touch inside its own directory.
-_PATH_EVENTS = {"os.remove", "os.rename", "os.rmdir", "os.mkdir", "os.symlink", "os.link", "os.chmod", "os.chown",
-                "os.truncate", "os.utime", "os.listdir", "os.scandir", "os.chdir", "os.chflags", "os.lchflags",
-                "os.mkfifo", "os.mknod", "os.setxattr", "os.removexattr", "os.listxattr", "os.getxattr",
-                "shutil.rmtree", "shutil.copyfile", "shutil.move", "shutil.copytree", "glob.glob", "sqlite3.connect"}
+_PATH_EVENTS = {"os.remove", "os.rename", "os.rmdir", "os.mkdir", "os.symlink", "os.link", "os.chmod",
+                "os.chown", "os.truncate", "os.utime", "os.listdir", "os.scandir", "os.chdir", "os.chflags",
+                "os.lchflags", "os.mkfifo", "os.mknod", "os.setxattr", "os.removexattr", "os.listxattr",
+                "os.getxattr", "shutil.rmtree", "shutil.copyfile", "shutil.move", "shutil.copytree",
+                "glob.glob", "sqlite3.connect"}
 _READ_ONLY_PATH_EVENTS = {"os.listdir", "os.scandir", "glob.glob", "os.listxattr", "os.getxattr", "os.chdir"}
 
 
@@ -158,7 +165,8 @@ class Guard:
         top = name.split(".", 1)[0]
         if top == "lab":
             return name == "lab" or any(name == a or name.startswith(a + ".") for a in self.allowed_lab)
-        return top not in ("lessons", "tests", "_posixsubprocess", "_cffi_backend", "cffi", "dbm", "_dbm", "_gdbm")
+        return top not in ("lessons", "tests", "_posixsubprocess", "_cffi_backend", "cffi", "dbm", "_dbm",
+                           "_gdbm")
 
     @staticmethod
     def _under(path: str, root: str) -> bool:
@@ -175,12 +183,12 @@ class Guard:
             return False
         return any(self._under(path, r) for r in self.read_roots)
 
-    def _resolve(self, path: object) -> str | None:
+    def _resolve(self, path: Any) -> str | None:  # what an audit event passes: any object
         if isinstance(path, int):
             return None  # an already open descriptor
         if isinstance(path, bytes):
             path = os.fsdecode(path)
-        path = os.fspath(path)  # type: ignore[arg-type]
+        path = os.fspath(path)  # a TypeError for what is not a path, as open() raises
         return os.path.realpath(os.path.join(self.workdir, path) if not os.path.isabs(path) else path)
 
     def _check_resolved(self, resolved: str, writing: bool) -> None:
@@ -211,11 +219,11 @@ class Guard:
             if isinstance(name, str) and not self._module_allowed(name):
                 self._record(f"import {name}")
                 raise BlockedImport(f"importing {name!r} is not allowed in a submission: the lab's reference "
-                                    f"implementation, data and lesson files are off limits; write the step yourself "
-                                    f"with numpy, scipy or cv2")
+                                    "implementation, data and lesson files are off limits; write the step "
+                                    "yourself with numpy, scipy or cv2")
             return
         if event == "open":
-            path, mode, flags = (tuple(args) + (None, None))[:3]
+            path, mode, flags = (*tuple(args), None, None)[:3]
             if path is None:
                 return
             resolved = self._resolve(path)
@@ -225,7 +233,8 @@ class Guard:
             if isinstance(mode, str):
                 writing = any(c in mode for c in "wax+")
             if isinstance(flags, int):
-                writing = writing or bool(flags & (os.O_WRONLY | os.O_RDWR | os.O_CREAT | os.O_APPEND | os.O_TRUNC))
+                modes = os.O_WRONLY | os.O_RDWR | os.O_CREAT | os.O_APPEND | os.O_TRUNC
+                writing = writing or bool(flags & modes)
             self._check_resolved(resolved, writing)
             return
         reason = _BLOCKED_EVENTS.get(event)
@@ -243,10 +252,12 @@ class Guard:
                     resolved = self._resolve(args[index])
                 except TypeError:
                     continue
-                if resolved is not None and not self._path_allowed(resolved, event not in _READ_ONLY_PATH_EVENTS):
+                writing = event not in _READ_ONLY_PATH_EVENTS
+                if resolved is not None and not self._path_allowed(resolved, writing):
                     what = f"{event} on {resolved}"
                     self._record(what)
-                    raise SandboxViolation(f"{what} is not allowed: a submission may only use its own directory")
+                    raise SandboxViolation(f"{what} is not allowed: a submission may only use its own "
+                                           "directory")
 
 
 #: OpenCV functions that open files themselves (no audit event): the first argument is a path.
@@ -276,10 +287,8 @@ def _guard_cv2(guard: Guard) -> None:
                                                                    "FileStorage")))
             return __original(*args, **kwargs)
 
-        try:
+        with contextlib.suppress(AttributeError, TypeError):
             functools.update_wrapper(checked, original)
-        except (AttributeError, TypeError):
-            pass
         setattr(cv2, name, checked)
 
 
@@ -309,7 +318,7 @@ def _set_limits(limits: dict[str, float], nobody: tuple[int, int] | None) -> Non
 
     def cap(which: int, value: float) -> None:
         value = int(value)
-        soft, hard = resource.getrlimit(which)
+        _soft, hard = resource.getrlimit(which)
         if hard != resource.RLIM_INFINITY:
             value = min(value, hard)
         resource.setrlimit(which, (value, value if which != resource.RLIMIT_CPU else value + 1))
@@ -427,9 +436,9 @@ def main() -> None:
         except (WireError, TypeError, ValueError, OverflowError) as exc:  # a value that is not data
             payload = encode({"kind": "error", "failure": {
                 "kind": "protocol", "type_name": type(exc).__name__,
-                "message": f"the value returned cannot be sent back to the grader: it contains {str(exc)[:300]}; "
-                           f"return numpy arrays (numbers, not objects), numbers, strings, lists, tuples, dicts "
-                           f"or the lab.core values the signature names",
+                "message": "the value returned cannot be sent back to the grader: it contains "
+                           f"{str(exc)[:300]}; return numpy arrays (numbers, not objects), numbers, strings, "
+                           "lists, tuples, dicts or the lab.core values the signature names",
                 "traceback": "", "printed": capture.take(), "violations": list(guard.violations)}})
         write_frame(response_fd, payload)
 
@@ -441,7 +450,8 @@ def main() -> None:
         os._exit(0)
     functions = {name: _signature(value) for name, value in vars(module).items()
                  if callable(value) and getattr(value, "__module__", None) == "submission"}
-    reply({"kind": "ready", "functions": functions, "printed": capture.take(), "violations": list(guard.violations)})
+    reply({"kind": "ready", "functions": functions, "printed": capture.take(),
+           "violations": list(guard.violations)})
     while True:
         request_frame = read_frame(request_fd)
         if request_frame is None:

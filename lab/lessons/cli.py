@@ -19,7 +19,7 @@ import contextlib
 import json
 from collections.abc import Iterator
 from pathlib import Path
-from typing import Annotated, Optional
+from typing import Annotated
 
 import typer
 
@@ -51,20 +51,22 @@ def _read_submission(path: Path) -> str:
     try:
         return path.read_text(encoding="utf-8-sig")
     except UnicodeDecodeError:
-        raise InvalidValue("SUBMISSION", f"{str(path)!r} is not UTF-8 text: save it as UTF-8 Python source") from None
+        raise InvalidValue("SUBMISSION", f"{str(path)!r} is not UTF-8 text: save it as UTF-8 Python "
+                                         "source") from None
 
 
 def grade_command(
     lesson: Annotated[str, typer.Argument(help="Lesson id (01-calibration), name (calibration) or folder.")],
-    submission: Annotated[Optional[Path], typer.Argument(help="The student's .py file.")] = None,
-    reference: Annotated[bool, typer.Option("--reference", help="Grade the lab's own implementation.")] = False,
-    out: Annotated[Optional[Path], typer.Option("--out", help="Write Gradescope's results.json here.")] = None,
-    seed: Annotated[Optional[int], typer.Option("--seed", help="Derive every dataset's seed from N (default: "
-                                                                  "fresh secret seeds).")] = None,
+    submission: Annotated[Path | None, typer.Argument(help="The student's .py file.")] = None,
+    reference: Annotated[bool, typer.Option("--reference",
+                                            help="Grade the lab's own implementation.")] = False,
+    out: Annotated[Path | None, typer.Option("--out", help="Write Gradescope's results.json here.")] = None,
+    seed: Annotated[int | None, typer.Option("--seed", help="Derive every dataset's seed from N (default: "
+                                                            "fresh secret seeds).")] = None,
     as_json: Annotated[bool, typer.Option("--json", help="Print results.json instead of a summary.")] = False,
     unsafe_sandbox: Annotated[bool, typer.Option(
-        "--unsafe-sandbox", help="Run the submission without the bubblewrap sandbox, with Python's audit hook only. "
-                                 "For trusted code only, never for a class.")] = False,
+        "--unsafe-sandbox", help="Run the submission without the bubblewrap sandbox, with Python's audit "
+                                 "hook only. For trusted code only, never for a class.")] = False,
 ) -> None:
     """Grade a submission (or the reference) and write Gradescope's results.json.
 
@@ -82,7 +84,7 @@ def grade_command(
             raise InvalidValue("SUBMISSION", "give a submission file, or --reference to grade the lab's own "
                                              "implementation (not both)")
         found = find_lesson(lesson)
-        source = None if reference else _read_submission(submission)  # type: ignore[arg-type]
+        source = None if reference or submission is None else _read_submission(submission)
         report = grade(found, source, reference=reference, seed=seed)
         results = report.results_json()
         if out is not None:
@@ -139,9 +141,11 @@ def validate_command(lesson: Annotated[str, typer.Argument(help="Lesson id, name
 
 def run_command(
     lesson: Annotated[str, typer.Argument(help="Lesson id, name or folder.")],
-    report: Annotated[Path, typer.Option("--report", help="Folder to write index.html, scene.html and images to.")],
-    dataset: Annotated[Optional[str], typer.Option("--dataset", help="A dataset of the lesson's tasks.toml "
-                                                                     "(default: its first) or of the module.")] = None,
+    report: Annotated[Path, typer.Option("--report",
+                                         help="Folder to write index.html, scene.html and images to.")],
+    dataset: Annotated[str | None, typer.Option("--dataset", help="A dataset of the lesson's tasks.toml "
+                                                                  "(default: its first) or of the module.")
+                       ] = None,
     seed: Annotated[int, typer.Option("--seed", help="Seed of the data and of every step.")] = 0,
 ) -> None:
     """Run a lesson's reference pipeline headless and write an HTML report (metrics, images, 3D scene)."""
@@ -154,7 +158,8 @@ def run_command(
     summary = json.loads((report / "report.json").read_text(encoding="utf-8"))
     for step in summary["steps"]:
         metrics = {k: v for k, v in step["metrics"].items() if not isinstance(v, list)}
-        shown = ", ".join(f"{k}={v:.4g}" if isinstance(v, float) else f"{k}={v}" for k, v in list(metrics.items())[:6])
+        shown = ", ".join(f"{k}={v:.4g}" if isinstance(v, float) else f"{k}={v}"
+                          for k, v in list(metrics.items())[:6])
         typer.echo(f"{step['step']:<24} {step['seconds']:7.3f} s  {shown}")
     if summary["error"]:
         typer.echo(f"stopped: {summary['error']}", err=True)
@@ -163,7 +168,8 @@ def run_command(
 
 def register(app: typer.Typer) -> None:
     """Add ``grade`` and the ``lesson`` sub-commands to the ``vision-lab`` app."""
-    app.command("grade", help="Grade a submission (or --reference) and write Gradescope's results.json.")(grade_command)
+    app.command("grade", help="Grade a submission (or --reference) and write Gradescope's "
+                              "results.json.")(grade_command)
     lesson_app = typer.Typer(help="Lessons: list, validate, run one headless with an HTML report.",
                              no_args_is_help=True)
     lesson_app.command("list")(list_command)
@@ -172,4 +178,4 @@ def register(app: typer.Typer) -> None:
     app.add_typer(lesson_app, name="lesson")
 
 
-__all__ = ["register", "grade_command", "list_command", "validate_command", "run_command"]
+__all__ = ["grade_command", "list_command", "register", "run_command", "validate_command"]

@@ -58,15 +58,15 @@ CHILD_FILES = ("__init__.py", "core", "lessons/__init__.py", "lessons/child.py",
 _SYSTEM_DIRS = ("/usr", "/bin", "/sbin", "/lib", "/lib32", "/lib64", "/libx32")
 _SYSTEM_FILES = ("/etc/ld.so.cache", "/etc/ld.so.conf", "/etc/ld.so.conf.d", "/etc/localtime")
 
-FIX = ("install bubblewrap (Debian/Ubuntu: apt-get install bubblewrap; Fedora: dnf install bubblewrap) and allow "
-       "namespaces (in Docker: docker run --cap-add SYS_ADMIN --security-opt apparmor=unconfined "
-       "--security-opt seccomp=unconfined ...; as a non-root user on Ubuntu 24.04 also "
-       "sysctl kernel.apparmor_restrict_unprivileged_userns=0), "
-       "or, for trusted code only, pass --unsafe-sandbox")
+FIX = ("install bubblewrap (Debian/Ubuntu: apt-get install bubblewrap; Fedora: dnf install bubblewrap) and "
+       "allow namespaces (in Docker: docker run --cap-add SYS_ADMIN --security-opt apparmor=unconfined "
+       "--security-opt seccomp=unconfined ...; as a non-root user on Ubuntu 24.04 also sysctl "
+       "kernel.apparmor_restrict_unprivileged_userns=0), or, for trusted code only, pass --unsafe-sandbox")
 
 
 class SandboxUnavailable(LabError):
-    """The operating-system sandbox cannot run here, so untrusted code is not graded (HTTP 503; CLI exit 2)."""
+    """The operating-system sandbox cannot run here, so untrusted code is not graded (HTTP 503; CLI
+    exit 2)."""
 
     status = 503
     kind = "sandbox_unavailable"
@@ -125,14 +125,16 @@ def python_roots() -> list[str]:
     """Folders of the Python installation the child imports from (stdlib, site-packages, prefixes)."""
     paths = sysconfig.get_paths()
     roots = {paths[k] for k in ("stdlib", "platstdlib", "purelib", "platlib") if k in paths}
-    roots.update(p for p in sys.path if p and (("site-packages" in p or "dist-packages" in p) and os.path.isdir(p)
-                                                or p.startswith((sys.base_prefix, sys.prefix))))
+    roots.update(p for p in sys.path
+                 if p and ((("site-packages" in p or "dist-packages" in p) and os.path.isdir(p))
+                           or p.startswith((sys.base_prefix, sys.prefix))))
     return sorted(roots)
 
 
 def _mounted_roots() -> list[str]:
     """The Python folders to bind, outermost only, without those the system folders already hold."""
-    candidates = {os.path.realpath(p) for p in (sys.base_prefix, sys.prefix, *python_roots()) if os.path.isdir(p)}
+    candidates = {os.path.realpath(p) for p in (sys.base_prefix, sys.prefix, *python_roots())
+                  if os.path.isdir(p)}
     candidates.add(os.path.realpath(os.path.dirname(os.path.realpath(sys.executable))))
     system = [os.path.realpath(d) for d in _SYSTEM_DIRS if os.path.isdir(d)]
     kept: list[str] = []
@@ -158,7 +160,8 @@ def _sandbox_uid() -> int:
 def bwrap_command(command: list[str], *, isolation: Isolation, env: dict[str, str]) -> list[str]:
     """``command`` wrapped in bubblewrap as the module docstring describes (the list to exec)."""
     args = [isolation.bwrap, "--unshare-pid", "--unshare-ipc", "--unshare-net", "--unshare-uts",
-            "--unshare-cgroup-try", "--hostname", "sandbox", "--die-with-parent", "--new-session", "--clearenv"]
+            "--unshare-cgroup-try", "--hostname", "sandbox", "--die-with-parent", "--new-session",
+            "--clearenv"]
     root = os.geteuid() == 0
     if not root:
         args += ["--unshare-user", "--uid", "65534", "--gid", "65534"]
@@ -218,8 +221,8 @@ def bwrap_command(command: list[str], *, isolation: Isolation, env: dict[str, st
 
 # --- the probe ----------------------------------------------------------------------------------
 _PROBE = ("import json, os, sys; sys.path.append({root!r}); import lab.lessons.child, numpy; "
-          "print(json.dumps({{'uid': os.getuid(), 'pid': os.getpid(), 'lab_modules': os.path.exists({modules!r}), "
-          "'writable': os.access({workdir!r}, os.W_OK)}}))")
+          "print(json.dumps({{'uid': os.getuid(), 'pid': os.getpid(), 'lab_modules': "
+          "os.path.exists({modules!r}), 'writable': os.access({workdir!r}, os.W_OK)}}))")
 
 
 def probe(isolation: Isolation, *, timeout: float = 60.0) -> str | None:
@@ -233,7 +236,8 @@ def probe(isolation: Isolation, *, timeout: float = 60.0) -> str | None:
     command = bwrap_command([sys.executable, "-I", "-c", code], isolation=isolation,
                             env={"PATH": "/usr/bin:/bin", "LANG": "C.UTF-8", "HOME": WORKDIR})
     try:
-        done = subprocess.run(command, capture_output=True, text=True, timeout=timeout, stdin=subprocess.DEVNULL)
+        done = subprocess.run(command, capture_output=True, text=True, timeout=timeout,
+                              stdin=subprocess.DEVNULL)
     except (OSError, subprocess.TimeoutExpired) as exc:
         return f"bubblewrap could not start a sandbox ({type(exc).__name__}: {exc})"
     if done.returncode != 0:
@@ -243,7 +247,8 @@ def probe(isolation: Isolation, *, timeout: float = 60.0) -> str | None:
         facts = json.loads(done.stdout.strip().splitlines()[-1])
     except (ValueError, IndexError):
         return f"the sandbox probe printed {done.stdout[:200]!r}"
-    if facts.get("uid") == 0 or facts.get("lab_modules") or not facts.get("writable") or facts.get("pid", 99) > 16:
+    if facts.get("uid") == 0 or facts.get("lab_modules") or not facts.get("writable") \
+            or facts.get("pid", 99) > 16:
         return f"the sandbox does not hold (probe saw {facts})"
     return None
 
@@ -261,5 +266,6 @@ def check(isolation: Isolation) -> None:
                                  f"Fix: {FIX}")
 
 
-__all__ = ["CHILD_FILES", "FIX", "Isolation", "SandboxUnavailable", "UID_BASE", "WORKDIR", "allow_unsafe",
-           "bwrap_command", "check", "default_isolation", "lab_dir", "probe", "python_roots", "unsafe_allowed"]
+__all__ = ["CHILD_FILES", "FIX", "UID_BASE", "WORKDIR", "Isolation", "SandboxUnavailable", "allow_unsafe",
+           "bwrap_command", "check", "default_isolation", "lab_dir", "probe", "python_roots",
+           "unsafe_allowed"]

@@ -26,6 +26,7 @@ A call that does not produce a value raises :class:`SubmissionFailure` whose ``k
 from __future__ import annotations
 
 import concurrent.futures
+import contextlib
 import dataclasses
 import io
 import os
@@ -64,8 +65,8 @@ _BOOT = ("import sys; sys.path.append({root!r}); from lab.lessons.child import m
 class SubmissionFailure(Exception):
     """A call of the student's code that produced no value, and why (``kind``)."""
 
-    def __init__(self, kind: str, message: str, *, type_name: str = "", traceback: str = "", printed: str = "",
-                 violations: tuple[str, ...] = ()) -> None:
+    def __init__(self, kind: str, message: str, *, type_name: str = "", traceback: str = "",
+                 printed: str = "", violations: tuple[str, ...] = ()) -> None:
         super().__init__(message)
         self.kind = kind
         self.message = message
@@ -88,7 +89,8 @@ class CallResult:
 
 @dataclass
 class _Drain:
-    """Keeps the first ``limit`` bytes the child writes to its stdout/stderr descriptors, discards the rest."""
+    """Keeps the first ``limit`` bytes the child writes to its stdout/stderr descriptors, discards the
+    rest."""
 
     limit: int
     data: bytearray = field(default_factory=bytearray)
@@ -115,7 +117,8 @@ class _Drain:
 
 
 def _nobody() -> tuple[int, int] | None:
-    """``--unsafe-sandbox`` only: (uid, gid) of ``nobody`` when running as root and it can run Python, else None."""
+    """``--unsafe-sandbox`` only: (uid, gid) of ``nobody`` when running as root and it can run Python,
+    else None."""
     if os.geteuid() != 0:
         return None
     try:
@@ -140,7 +143,8 @@ def _world_usable(path: Path) -> bool:
 
 
 def sandbox_paths(extra_deny: tuple[str, ...] = ()) -> dict[str, list[str]]:
-    """What the audit hook lets the child read (the Python installation, lab/core) and never read (the rest)."""
+    """What the audit hook lets the child read (the Python installation, lab/core) and never read (the
+    rest)."""
     lab = lab_dir()
     from lab.lessons.format import lessons_root
 
@@ -177,7 +181,7 @@ _launcher: concurrent.futures.ThreadPoolExecutor | None = None
 _launcher_lock = threading.Lock()
 
 
-def _launch(command: list[str], **popen: Any) -> subprocess.Popen:
+def _launch(command: list[str], **options: Any) -> subprocess.Popen:
     """``subprocess.Popen`` from one long-lived thread of this process.
 
     bubblewrap's ``--die-with-parent`` is the kernel's parent-death signal, which fires when the
@@ -188,9 +192,14 @@ def _launch(command: list[str], **popen: Any) -> subprocess.Popen:
     global _launcher
     with _launcher_lock:
         if _launcher is None:
-            _launcher = concurrent.futures.ThreadPoolExecutor(max_workers=1, thread_name_prefix="sandbox-launcher")
+            _launcher = concurrent.futures.ThreadPoolExecutor(max_workers=1,
+                                                              thread_name_prefix="sandbox-launcher")
         launcher = _launcher
-    return launcher.submit(subprocess.Popen, command, **popen).result()
+
+    def popen() -> subprocess.Popen:
+        return subprocess.Popen(command, **options)
+
+    return launcher.submit(popen).result()
 
 
 def _signal_name(number: int) -> str:
@@ -222,7 +231,8 @@ def _failure_of(message: dict[str, Any]) -> SubmissionFailure:
     kind = _text(failure, "kind", 20)
     if kind not in ("raised", "blocked", "memory", "protocol"):
         raise WireError(f"a failure of unknown kind {kind!r}")
-    return SubmissionFailure(kind, _text(failure, "message", 4000), type_name=_text(failure, "type_name", 200),
+    return SubmissionFailure(kind, _text(failure, "message", 4000),
+                             type_name=_text(failure, "type_name", 200),
                              traceback=_text(failure, "traceback", 8000), printed=_text(failure, "printed"),
                              violations=_texts(failure, "violations"))
 
@@ -314,11 +324,12 @@ class Sandbox:
             if nobody is not None:
                 os.chown(outside, *nobody)
             os.chmod(outside, 0o700)
-        env = {"PATH": "/usr/bin:/bin", "HOME": inside, "TMPDIR": inside, "LANG": "C.UTF-8", "LC_ALL": "C.UTF-8",
-               "OMP_NUM_THREADS": threads, "OPENBLAS_NUM_THREADS": threads, "MKL_NUM_THREADS": threads,
-               "NUMEXPR_NUM_THREADS": threads, "OPENCV_FOR_THREADS_NUM": threads, "NUMBA_NUM_THREADS": threads}
-        command = [sys.executable, "-I", "-B", "-c", _BOOT.format(root=str(lab_dir().parent)), str(request_read),
-                   str(response_write)]
+        env = {"PATH": "/usr/bin:/bin", "HOME": inside, "TMPDIR": inside, "LANG": "C.UTF-8",
+               "LC_ALL": "C.UTF-8", "OMP_NUM_THREADS": threads, "OPENBLAS_NUM_THREADS": threads,
+               "MKL_NUM_THREADS": threads, "NUMEXPR_NUM_THREADS": threads, "OPENCV_FOR_THREADS_NUM": threads,
+               "NUMBA_NUM_THREADS": threads}
+        command = [sys.executable, "-I", "-B", "-c", _BOOT.format(root=str(lab_dir().parent)),
+                   str(request_read), str(response_write)]
         if bwrap:
             command = isolation_module.bwrap_command(command, isolation=self.isolation, env=env)
             env = {"PATH": env["PATH"], "LANG": env["LANG"]}
@@ -337,8 +348,9 @@ class Sandbox:
         try:
             command, env, inside, outside = self._command(request_read, response_write)
             self._process = _launch(
-                command, stdin=subprocess.DEVNULL, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, cwd=outside,
-                env=env, pass_fds=(request_read, response_write), start_new_session=True, close_fds=True)
+                command, stdin=subprocess.DEVNULL, stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
+                cwd=outside, env=env, pass_fds=(request_read, response_write), start_new_session=True,
+                close_fds=True)
         except BaseException:
             for fd in (request_write, response_read):
                 os.close(fd)
@@ -352,12 +364,13 @@ class Sandbox:
         self._killed = False
         self._cpu_seconds = self._max_rss_mb = 0.0
         self._drain = _Drain(int(self.limits.output_kb * 1024))
-        self._drain_thread = threading.Thread(target=self._drain.run, args=(self._process.stdout,), daemon=True,
-                                              name="sandbox-output")
+        self._drain_thread = threading.Thread(target=self._drain.run, args=(self._process.stdout,),
+                                              daemon=True, name="sandbox-output")
         self._drain_thread.start()
         limits = {k: float(v) for k, v in dataclasses.asdict(self.limits).items()}
-        setup = {"workdir": inside, "source": self.source, "filename": self.filename, "preload": list(self.preload),
-                 "limits": limits, "nobody": None if self.isolation.mode == "bwrap" else _nobody(),
+        setup = {"workdir": inside, "source": self.source, "filename": self.filename,
+                 "preload": list(self.preload), "limits": limits,
+                 "nobody": None if self.isolation.mode == "bwrap" else _nobody(),
                  "allowed_lab": list(ALLOWED_LAB), "output_chars": int(self.limits.output_kb * 1024),
                  **sandbox_paths(self.deny)}
         try:
@@ -371,22 +384,24 @@ class Sandbox:
                 return self.functions
             else:
                 raise WireError("a reply out of turn")
-        except SubmissionFailure as failure:
+        except SubmissionFailure as error:  # not named failure: that is the load error read above
             self.kill()
-            raise SubmissionFailure("load", f"your file could not be loaded: {failure.message}",
-                                    printed=failure.printed) from None
+            raise SubmissionFailure("load", f"your file could not be loaded: {error.message}",
+                                    printed=error.printed) from None
         except WireError as exc:
             self.kill()
-            raise SubmissionFailure("load", f"your file could not be loaded: the sandbox sent {exc}") from None
+            raise SubmissionFailure("load", f"your file could not be loaded: the sandbox sent "
+                                            f"{exc}") from None
         self.close()
         reason = ("it tried something the sandbox does not allow" if failure.kind == "blocked"
                   else f"it raised {failure.type_name}")
         raise SubmissionFailure("load", f"your file could not be loaded: {reason}: {failure.message}",
-                                type_name=failure.type_name, traceback=failure.traceback, printed=failure.printed,
-                                violations=failure.violations)
+                                type_name=failure.type_name, traceback=failure.traceback,
+                                printed=failure.printed, violations=failure.violations)
 
     def _reap(self, timeout: float) -> int | None:
-        """Wait up to ``timeout`` s for the child; its exit code (negative: a signal), with CPU time and peak memory."""
+        """Wait up to ``timeout`` s for the child; its exit code (negative: a signal), with CPU time and
+        peak memory."""
         process = self._process
         if process is None:
             return None
@@ -419,10 +434,8 @@ class Sandbox:
         if process is None:
             return
         self._killed = True
-        try:
+        with contextlib.suppress(ProcessLookupError, PermissionError):
             os.killpg(process.pid, signal.SIGKILL)
-        except (ProcessLookupError, PermissionError):
-            pass
         self._reap(10)
 
     def close(self) -> None:
@@ -431,17 +444,13 @@ class Sandbox:
             for fd_name in ("_request_fd", "_response_fd"):
                 fd = getattr(self, fd_name)
                 if fd is not None:
-                    try:
+                    with contextlib.suppress(OSError):
                         os.close(fd)
-                    except OSError:
-                        pass
                     setattr(self, fd_name, None)
             if self._reap(0.5) is None:  # it exits on its own when its request pipe closes
                 self.kill()
-            try:
+            with contextlib.suppress(ProcessLookupError, PermissionError):
                 os.killpg(self._process.pid, signal.SIGKILL)  # anything it left behind in its group
-            except (ProcessLookupError, PermissionError):
-                pass
             if self._process.stdout is not None:
                 self._process.stdout.close()
             if self._drain_thread is not None:
@@ -469,7 +478,8 @@ class Sandbox:
         deadline = started + max(timeout, 0.0)
         self._timeout = timeout
         raw_before = self._drain.total if self._drain is not None else 0
-        self._send(encode({"kind": "call", "name": name, "args": tuple(args), "kwargs": dict(kwargs or {})}), deadline)
+        self._send(encode({"kind": "call", "name": name, "args": tuple(args), "kwargs": dict(kwargs or {})}),
+                   deadline)
         reply = self._receive(deadline, what=f"{name}()")
         seconds = time.monotonic() - started
         try:
@@ -483,8 +493,8 @@ class Sandbox:
                 raise WireError("a malformed reply")
         except WireError as exc:
             self.kill()
-            raise SubmissionFailure("protocol", f"{name}() got a malformed reply from the sandbox ({exc}); did your "
-                                                f"code write to the grader's pipe?") from None
+            raise SubmissionFailure("protocol", f"{name}() got a malformed reply from the sandbox ({exc}); "
+                                                "did your code write to the grader's pipe?") from None
         raw = (self._drain.total if self._drain is not None else 0) - raw_before
         cap = int(self.limits.output_kb * 1024)
         flooded = max(0, dropped) + max(0, raw - cap)
@@ -518,16 +528,16 @@ class Sandbox:
         limit = int(self.limits.result_mb * 2**20)
         if size > limit:
             self.kill()
-            raise SubmissionFailure("protocol", f"{what} returned {size / 2**20:.1f} MB of data; the limit is "
-                                                f"{self.limits.result_mb:g} MB")
+            raise SubmissionFailure("protocol", f"{what} returned {size / 2**20:.1f} MB of data; the limit "
+                                                f"is {self.limits.result_mb:g} MB")
         payload = self._read(size, deadline, what)
         try:
             return decode_reply(payload)
         except WireError as exc:
             self.kill()
-            raise SubmissionFailure("protocol", f"{what} returned a value the grader does not accept ({exc}); "
-                                                f"return numpy arrays of numbers, numbers, or the lab.core values "
-                                                f"the signature names") from None
+            raise SubmissionFailure("protocol", f"{what} returned a value the grader does not accept "
+                                                f"({exc}); return numpy arrays of numbers, numbers, or the "
+                                                "lab.core values the signature names") from None
 
     def _read(self, size: int, deadline: float, what: str) -> bytes:
         fd = self._response_fd
@@ -549,8 +559,9 @@ class Sandbox:
 
     def _timeout_failure(self, what: str) -> SubmissionFailure:
         seconds = f" of {self._timeout:.3g} s" if self._timeout else ""
-        return SubmissionFailure("timeout", f"{what} did not finish within the time limit{seconds} (an infinite "
-                                            f"loop, or much slower than it needs to be)", printed=self.output())
+        return SubmissionFailure("timeout", f"{what} did not finish within the time limit{seconds} (an "
+                                            "infinite loop, or much slower than it needs to be)",
+                                 printed=self.output())
 
     def _death(self) -> SubmissionFailure:
         """Why the child went away, from its exit status, CPU time and peak memory."""
@@ -562,15 +573,17 @@ class Sandbox:
         if code is not None and code < 0:
             sig = -code
             cpu_limit = self.limits.cpu_seconds
-            if sig == signal.SIGXCPU or (sig == signal.SIGKILL and not self._killed and self._cpu_seconds >= cpu_limit):
-                return SubmissionFailure("cpu", f"your code used more than {cpu_limit:g} s of CPU time and was "
-                                                f"stopped ({_signal_name(sig)})", printed=printed)
+            if sig == signal.SIGXCPU or (sig == signal.SIGKILL and not self._killed
+                                         and self._cpu_seconds >= cpu_limit):
+                return SubmissionFailure("cpu", f"your code used more than {cpu_limit:g} s of CPU time and "
+                                                f"was stopped ({_signal_name(sig)})", printed=printed)
             message = f"the process running your code was killed by {_signal_name(sig)}"
             if sig in (signal.SIGSEGV, signal.SIGBUS, signal.SIGABRT, signal.SIGKILL):
                 near = self._max_rss_mb >= 0.8 * self.limits.memory_mb
                 message += (f"; it used {self._max_rss_mb:.0f} MB at most"
-                            + (", near" if near else ", and") + f" the memory limit is {self.limits.memory_mb:g} MB"
+                            + (", near" if near else ", and")
+                            + f" the memory limit is {self.limits.memory_mb:g} MB"
                             + ": running out of memory inside a library ends a process this way")
             return SubmissionFailure("crashed", message, printed=printed)
-        return SubmissionFailure("crashed", f"your code ended the process running it (exit status {code}); do not "
-                                            f"call exit() or os._exit()", printed=printed)
+        return SubmissionFailure("crashed", f"your code ended the process running it (exit status {code}); "
+                                            "do not call exit() or os._exit()", printed=printed)

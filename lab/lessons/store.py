@@ -21,11 +21,12 @@ import os
 import threading
 import time
 import uuid
+from collections.abc import Callable
 from dataclasses import dataclass
-from typing import Any, Callable
+from typing import Any, cast
 
 from sqlalchemy import Float, Integer, String, Text, create_engine, event, select, update
-from sqlalchemy.engine import Engine
+from sqlalchemy.engine import CursorResult, Engine, Result
 from sqlalchemy.orm import DeclarativeBase, Mapped, Session, mapped_column
 
 log = logging.getLogger("lab.lessons")
@@ -34,6 +35,12 @@ log = logging.getLogger("lab.lessons")
 MAX_ATTEMPTS = 3
 
 STATUSES = ("queued", "running", "done", "error")
+
+
+def _rowcount(result: Result[Any]) -> int:
+    """The rows an UPDATE matched: a session's UPDATE without RETURNING gives a CursorResult, which its
+    type does not say (sqlalchemy/sqlalchemy#12913)."""
+    return cast("CursorResult[Any]", result).rowcount
 
 
 class Base(DeclarativeBase):
@@ -84,8 +91,9 @@ class Submission:
     def of(cls, row: SubmissionRow) -> Submission:
         import json
 
-        return cls(id=row.id, lesson=row.lesson, student=row.student, filename=row.filename, source=row.source,
-                   status=row.status, created=row.created, started=row.started, finished=row.finished,
+        return cls(id=row.id, lesson=row.lesson, student=row.student, filename=row.filename,
+                   source=row.source, status=row.status, created=row.created, started=row.started,
+                   finished=row.finished,
                    attempts=row.attempts, score=row.score, max_score=row.max_score,
                    results=json.loads(row.results) if row.results else None, error=row.error)
 
@@ -157,8 +165,10 @@ class SubmissionQueue:
                 claimed = session.execute(
                     update(SubmissionRow).where(SubmissionRow.id == row_id, SubmissionRow.status == "queued")
                     .values(status="running", started=time.time(), attempts=SubmissionRow.attempts + 1))
-                if claimed.rowcount == 1:
-                    return Submission.of(session.get(SubmissionRow, row_id))
+                if _rowcount(claimed) == 1:
+                    row = session.get(SubmissionRow, row_id)
+                    assert row is not None  # this transaction has just claimed it
+                    return Submission.of(row)
         return None
 
     def finish(self, submission_id: str, results: dict[str, Any]) -> None:
@@ -177,14 +187,17 @@ class SubmissionQueue:
                 status="error", finished=time.time(), error=error[:4000]))
 
     def requeue_running(self) -> int:
-        """At start-up: submissions left ``running`` by a killed server go back to ``queued`` (or ``error``)."""
+        """At start-up: submissions left ``running`` by a killed server go back to ``queued`` (or
+        ``error``)."""
         with Session(self.engine) as session, session.begin():
-            gave_up = session.execute(
-                update(SubmissionRow).where(SubmissionRow.status == "running", SubmissionRow.attempts >= MAX_ATTEMPTS)
+            gave_up = _rowcount(session.execute(
+                update(SubmissionRow).where(SubmissionRow.status == "running",
+                                            SubmissionRow.attempts >= MAX_ATTEMPTS)
                 .values(status="error", finished=time.time(),
-                        error=f"grading was interrupted {MAX_ATTEMPTS} times; ask your instructor")).rowcount
-            requeued = session.execute(update(SubmissionRow).where(SubmissionRow.status == "running")
-                                       .values(status="queued", started=None)).rowcount
+                        error=f"grading was interrupted {MAX_ATTEMPTS} times; ask your instructor")))
+            requeued = _rowcount(session.execute(
+                update(SubmissionRow).where(SubmissionRow.status == "running")
+                .values(status="queued", started=None)))
         if requeued or gave_up:
             log.warning("requeued %d interrupted submission(s), gave up on %d", requeued, gave_up)
         return int(requeued)
@@ -222,7 +235,8 @@ class WorkerPool:
     processes may write to the same database).
     """
 
-    def __init__(self, queue: SubmissionQueue, grade: GradeFunction, *, workers: int = 1, poll_s: float = 1.0) -> None:
+    def __init__(self, queue: SubmissionQueue, grade: GradeFunction, *, workers: int = 1,
+                 poll_s: float = 1.0) -> None:
         if workers < 1:
             raise ValueError("a worker pool needs at least one worker")
         self.queue = queue

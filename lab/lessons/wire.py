@@ -103,15 +103,17 @@ def _encode(value: Any, buffers: list[bytes], offset: list[int], depth: int) -> 
         for key, item in value.items():
             if not (key is None or isinstance(key, (str, int, float, bool))) or isinstance(key, np.generic):
                 raise WireError(f"a dict key of type {type(key).__name__} (use str or int keys)")
-            pairs.append([_encode(key, buffers, offset, depth + 1), _encode(item, buffers, offset, depth + 1)])
+            pairs.append([_encode(key, buffers, offset, depth + 1),
+                          _encode(item, buffers, offset, depth + 1)])
         return {"$dict": pairs}
     if dataclasses.is_dataclass(value) and not isinstance(value, type):
         from lab.core.values import VALUE_TYPES
 
         name = type(value).__name__
         if VALUE_TYPES.get(name) is type(value):
-            return {"$value": name, "fields": {f.name: _encode(getattr(value, f.name), buffers, offset, depth + 1)
-                                               for f in dataclasses.fields(value)}}
+            return {"$value": name,
+                    "fields": {f.name: _encode(getattr(value, f.name), buffers, offset, depth + 1)
+                               for f in dataclasses.fields(value)}}
     raise WireError(f"an object of type {type(value).__module__}.{type(value).__qualname__}")
 
 
@@ -196,7 +198,8 @@ def _decode_array(node: dict[str, Any], buffers: memoryview) -> np.ndarray:
     if set(node) != {"$array", "dtype", "shape"}:
         raise WireError("a malformed array node")
     if dtype not in DTYPES:
-        raise WireError(f"an array of dtype {str(dtype)[:20]!r} (only bool, integer, float and complex arrays)")
+        raise WireError(f"an array of dtype {str(dtype)[:20]!r} "
+                        "(only bool, integer, float and complex arrays)")
     if not (isinstance(shape, list) and len(shape) <= MAX_NDIM
             and all(isinstance(n, int) and not isinstance(n, bool) and n >= 0 for n in shape)):
         raise WireError("an array with a malformed shape")
@@ -206,8 +209,8 @@ def _decode_array(node: dict[str, Any], buffers: memoryview) -> np.ndarray:
     start, nbytes = where
     item = np.dtype(dtype).itemsize
     if math.prod(shape) * item != nbytes or start + nbytes > len(buffers):
-        raise WireError(f"an array of shape {tuple(shape)} and dtype {dtype} whose data is not {nbytes} bytes "
-                        f"inside the message")
+        raise WireError(f"an array of shape {tuple(shape)} and dtype {dtype} whose data is not {nbytes} "
+                        "bytes inside the message")
     array = np.frombuffer(buffers[start:start + nbytes], dtype=np.dtype(dtype)).reshape(shape)
     return array.astype(array.dtype.newbyteorder("="), copy=True)
 
