@@ -44,13 +44,15 @@ def resolve_dataset(pipeline: Pipeline, dataset: str | os.PathLike[str] | None,
         return text, options
     path = Path(text).expanduser()
     if not path.exists():
-        raise UnknownName("dataset", f"module {pipeline.name!r} has no dataset {text!r} and no file or folder "
-                                     f"{text!r} exists; datasets are {names}")
+        raise UnknownName("dataset", f"module {pipeline.name!r} has no dataset {text!r} and no file or "
+                                     f"folder {text!r} exists; datasets are {names}")
     readers = [d for d in pipeline.datasets if d.takes_path]
     if not readers:
-        raise InvalidValue("dataset", f"module {pipeline.name!r} reads no files or folders; datasets are {names}")
+        raise InvalidValue("dataset", f"module {pipeline.name!r} reads no files or folders; "
+                                      f"datasets are {names}")
     if "path" in options:
-        raise InvalidValue("options.path", f"given twice: as the dataset {text!r} and as option path={options['path']!r}")
+        raise InvalidValue("options.path", f"given twice: as the dataset {text!r} and as option "
+                                           f"path={options['path']!r}")
     options["path"] = str(path)
     return readers[0].name, options
 

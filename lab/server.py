@@ -13,11 +13,17 @@ from __future__ import annotations
 
 import logging
 import threading
+from collections.abc import Iterable, Mapping
 from dataclasses import dataclass
-from typing import Any, Iterable, Mapping
+from typing import TYPE_CHECKING
 
 from lab.core.pipeline import Pipeline
 from lab.core.store import SessionStore
+
+if TYPE_CHECKING:  # both are imported when the lab starts, not when this module is imported
+    import uvicorn
+
+    from lab.viewer.app import ViewerApp
 
 log = logging.getLogger("lab.server")
 
@@ -27,8 +33,8 @@ class RunningLab:
     """A lab started by :func:`start`: its store, viewer, API server and URLs; :meth:`stop` ends it."""
 
     store: SessionStore
-    viewer: Any
-    api_server: Any
+    viewer: ViewerApp
+    api_server: uvicorn.Server | None
     api_thread: threading.Thread | None
     api_url: str
     viewer_url: str
@@ -46,7 +52,8 @@ def _display_host(host: str) -> str:
 
 
 def _build(host: str, port: int, viewer_port: int, store: SessionStore | None,
-           modules: Mapping[str, Pipeline] | Iterable[Pipeline] | None, log_level: str, data_root: str | None):
+           modules: Mapping[str, Pipeline] | Iterable[Pipeline] | None, log_level: str,
+           data_root: str | None) -> tuple[SessionStore, ViewerApp, str, uvicorn.Server]:
     import uvicorn
 
     from lab.api.app import create_app
@@ -78,7 +85,8 @@ def _build(host: str, port: int, viewer_port: int, store: SessionStore | None,
     return store, viewer, viewer_url, api_server
 
 
-def serve(*, host: str = "127.0.0.1", port: int = 8000, viewer_port: int = 8080, store: SessionStore | None = None,
+def serve(*, host: str = "127.0.0.1", port: int = 8000, viewer_port: int = 8080,
+          store: SessionStore | None = None,
           modules: Mapping[str, Pipeline] | Iterable[Pipeline] | None = None, log_level: str = "info",
           data_root: str | None = None) -> None:
     """Serve the landing page and REST API on ``port`` and the viewer on ``viewer_port``; blocks
@@ -88,7 +96,8 @@ def serve(*, host: str = "127.0.0.1", port: int = 8000, viewer_port: int = 8080,
     (default: every registered module); ``data_root`` limits the folders datasets may read
     (:class:`~lab.core.SessionStore`).
     """
-    store, viewer, viewer_url, api_server = _build(host, port, viewer_port, store, modules, log_level, data_root)
+    store, viewer, _viewer_url, api_server = _build(host, port, viewer_port, store, modules, log_level,
+                                                    data_root)
     print(f"Vision Lab: landing page and REST API on http://{_display_host(host)}:{port} "
           f"(OpenAPI at /docs), 3D viewer on {viewer.url}", flush=True)
     print(f"Grading: {sandbox_status()}", flush=True)
@@ -101,7 +110,8 @@ def serve(*, host: str = "127.0.0.1", port: int = 8000, viewer_port: int = 8080,
 
 
 def sandbox_status() -> str:
-    """One line on how submissions will be graded (the start-up probe of :mod:`lab.lessons.isolation`)."""
+    """One line on how submissions will be graded (the start-up probe of
+    :mod:`lab.lessons.isolation`)."""
     from lab.lessons import isolation
 
     chosen = isolation.default_isolation()
@@ -114,14 +124,16 @@ def sandbox_status() -> str:
     return "each submission in its own bubblewrap sandbox"
 
 
-def start(*, host: str = "127.0.0.1", port: int = 8000, viewer_port: int = 8080, store: SessionStore | None = None,
+def start(*, host: str = "127.0.0.1", port: int = 8000, viewer_port: int = 8080,
+          store: SessionStore | None = None,
           modules: Mapping[str, Pipeline] | Iterable[Pipeline] | None = None, log_level: str = "warning",
           timeout: float = 30.0, data_root: str | None = None) -> RunningLab:
     """Start the lab in background threads and return once both servers accept connections
     (for notebooks and tests); call ``.stop()`` on the result."""
     import time
 
-    store, viewer, viewer_url, api_server = _build(host, port, viewer_port, store, modules, log_level, data_root)
+    store, viewer, _viewer_url, api_server = _build(host, port, viewer_port, store, modules, log_level,
+                                                    data_root)
     thread = threading.Thread(target=api_server.run, name="lab-api", daemon=True)
     thread.start()
     deadline = time.monotonic() + timeout
@@ -134,4 +146,4 @@ def start(*, host: str = "127.0.0.1", port: int = 8000, viewer_port: int = 8080,
     return RunningLab(store, viewer, api_server, thread, f"http://{_display_host(host)}:{port}", viewer.url)
 
 
-__all__ = ["serve", "start", "RunningLab"]
+__all__ = ["RunningLab", "serve", "start"]
