@@ -2,7 +2,8 @@
 
 Data: synthetic correspondences (exact truth, controlled noise and outliers), a small rendered
 pair of the "room" scene, and OpenCV's leuvenA/B photos with their K
-(``../shared/data/opencv-samples``). Sessions are built once per module.
+(``../shared/data/opencv-samples``). Sessions are built once per module. The fast kernels against
+their readable references are in ``test_epipolar_kernels.py``, the datasets in ``test_epipolar_datasets.py``.
 """
 
 import json
@@ -13,19 +14,18 @@ import cv2
 import numpy as np
 import pytest
 
-from lab.core import (Cameras, Curve, InvalidControl, InvalidValue, LabError, PointCloud, Points2D, Segments2D,
-                      StepFailed, open_session)
-from lab.data.two_view import correspondences
+from lab.core import (Cameras, Curve, InvalidControl, InvalidValue, LabError, PointCloud, Points2D,
+                      Segments2D, StepFailed, open_session)
 from lab.geometry.rotations import rotation_angle_deg
 from lab.modules import get_pipeline
-from lab.modules.epipolar import (PIPELINE, CANDIDATE_NAMES, CollinearPoints, CoplanarPoints, DegenerateInput,
-                                  MissingIntrinsics, SIFT_OFFSET_PX,
-                                  TooFewMatches, ZeroBaseline, clip_lines, compute_epipolar_lines,
-                                  decompose_essential, detect_features, eight_point, enforce_rank2, epipolar_distances,
-                                  epipolar_lines, epipoles, estimate_essential, estimate_fundamental_8point,
-                                  estimate_fundamental_ransac, match_features, nearest_neighbours, recover_pose,
-                                  refine_points, refine_pose, sampson_distance, symmetric_epipolar_distance,
-                                  triangulate)
+from lab.modules.epipolar import (CANDIDATE_NAMES, PIPELINE, SIFT_OFFSET_PX, VIEWS, CollinearPoints,
+                                  CoplanarPoints, DegenerateInput, MissingIntrinsics, TooFewMatches,
+                                  ZeroBaseline, clip_lines, compute_epipolar_lines, correspondences,
+                                  decompose_essential, detect_features, eight_point, enforce_rank2,
+                                  epipolar_distances, epipolar_lines, epipoles, estimate_essential,
+                                  estimate_fundamental_8point, estimate_fundamental_ransac, match_features,
+                                  nearest_neighbours, recover_pose, refine_points, refine_pose,
+                                  sampson_distance, sampson_refit, symmetric_epipolar_distance, triangulate)
 
 SAMPLES = Path(__file__).resolve().parents[2] / ".." / "shared" / "data" / "opencv-samples"
 STEPS = [spec.name for spec in PIPELINE.steps]
@@ -38,7 +38,8 @@ def unit(F):
 
 
 def angle_deg(a, b):
-    return float(np.degrees(np.arccos(np.clip(np.dot(a, b) / (np.linalg.norm(a) * np.linalg.norm(b)), -1, 1))))
+    cosine = np.dot(a, b) / (np.linalg.norm(a) * np.linalg.norm(b))
+    return float(np.degrees(np.arccos(np.clip(cosine, -1, 1))))
 
 
 def ours_pose(x1, x2, K, seed=0):
@@ -71,15 +72,16 @@ def noisy():
 
 @pytest.fixture(scope="module")
 def corr_session():
+    """Every step run once ("Run all": the plan of every step whose outputs are missing)."""
     session = open_session(PIPELINE, "correspondences", {"seed": 3}, seed=3)
-    session.run_until("refine_points")
+    session.run_until(None)
     return session
 
 
 @pytest.fixture(scope="module")
 def rendered_session():
     session = open_session(PIPELINE, "rendered", {"width": 400, "height": 300, "seed": 1}, seed=1)
-    session.run_until("refine_points")
+    session.run_until(None)
     return session
 
 
@@ -114,6 +116,14 @@ def test_pipeline_is_registered_with_the_contract_steps():
     json.dumps(PIPELINE.describe())  # every schema is JSON
 
 
+def test_views_are_values_the_pipeline_produces():
+    """The names the viewer's interactions read by name are written by a step or seeded by every dataset."""
+    assert PIPELINE.views == frozenset(VIEWS)
+    written = {name for spec in PIPELINE.steps for name in spec.writes}
+    seeded = set(correspondences(num_points=8, outlier_rate=0.0).state)
+    assert set(VIEWS) <= written | {"images", "K1", "K2"} and {"images", "K1", "K2"} <= seeded
+
+
 def test_lesson_steps_take_and_return_plain_arrays():
     spec = PIPELINE.step("estimate_fundamental_8point")
     assert spec.reads == ("x1", "x2") and [c.name for c in spec.controls] == ["normalize"]
@@ -129,7 +139,8 @@ def test_done_when_synthetic_benchmark_beats_opencv():
         loaded = correspondences(seed=seed)
         x1, x2, K, truth = loaded.state["x1"], loaded.state["x2"], loaded.state["K1"], loaded.truth
         (R_e, t_e), (R_f, t_f) = opencv_poses(x1, x2, K)
-        for name, (R, t) in (("ours", ours_pose(x1, x2, K, seed)), ("cv_e", (R_e, t_e)), ("cv_f", (R_f, t_f))):
+        poses = (("ours", ours_pose(x1, x2, K, seed)), ("cv_e", (R_e, t_e)), ("cv_f", (R_f, t_f)))
+        for name, (R, t) in poses:
             errors[name].append((float(rotation_angle_deg(R, truth["R"])), angle_deg(t, truth["t"])))
     median = {name: np.median(np.array(values), axis=0) for name, values in errors.items()}
     best_cv = np.minimum(median["cv_e"], median["cv_f"])
@@ -169,8 +180,8 @@ def test_real_photos_have_no_truth_metrics(leuven):
     session.run_until("refine_points")
     assert "rotation_error_deg" not in session.metrics["refine_pose"]
     assert session.metrics["recover_pose"] == {}
-    assert set(session.metrics["estimate_fundamental_ransac"]) == {"num_inliers", "inlier_ratio", "iterations",
-                                                                   "sampson_rms_px", "rank_of_F"}
+    assert set(session.metrics["estimate_fundamental_ransac"]) == {
+        "num_inliers", "inlier_ratio", "iterations", "sampson_rms_px", "rank_of_F"}
     assert session.metrics["refine_points"]["points_behind"] <= 2
     # the camera moved forwards between the leuven photos, as OpenCV's 5-point estimate also says
     x1, x2, K = session.state["x1"], session.state["x2"], session.state["K1"]
@@ -286,7 +297,7 @@ def test_zero_baseline(noise_px):
 @pytest.mark.parametrize("noise_px", [0.5, 1.0, 2.0])
 @pytest.mark.parametrize("threshold_px", [1.0, 2.0])
 def test_degenerate_input_is_found_at_realistic_noise(noise_px, threshold_px):
-    """One plane or one centre, with noise up to twice the threshold and 30 % outliers: the right error (GRIC)."""
+    """One plane or one centre, noise up to twice the threshold, 30 % outliers: the right error (GRIC)."""
     for options, error, words in (({"structure": "plane"}, CoplanarPoints, "one plane"),
                                   ({"baseline": 0.0}, ZeroBaseline, "share their centre")):
         for seed in range(3):
@@ -299,12 +310,12 @@ def test_degenerate_input_is_found_at_realistic_noise(noise_px, threshold_px):
 @pytest.mark.parametrize("noise_px", [0.5, 1.0, 2.0])
 @pytest.mark.parametrize("threshold_px", [1.0, 2.0])
 def test_general_scenes_are_not_degenerate_at_any_noise(noise_px, threshold_px):
-    """Scenes with depth, 30 % outliers, the same noise: never refused (a shallow scene and few points included)."""
+    """Scenes with depth, 30 % outliers, the same noise: never refused (shallow scenes, few points too)."""
     for options in ({}, {"depth_range": 1.0}, {"num_points": 60}, {"baseline": 0.3}):
         for seed in range(3):
             loaded = correspondences(noise_px=noise_px, seed=seed, **options)
-            result = estimate_fundamental_ransac(loaded.state["x1"], loaded.state["x2"], threshold_px=threshold_px,
-                                                 rng=np.random.default_rng(seed))
+            result = estimate_fundamental_ransac(loaded.state["x1"], loaded.state["x2"],
+                                                 threshold_px=threshold_px, rng=np.random.default_rng(seed))
             assert result.num_inliers >= 8, (options, seed)
 
 
@@ -352,7 +363,8 @@ def test_noise_sigma_is_robust_to_outliers_and_to_the_threshold():
         inliers = np.abs(rng.normal(0, sigma, 2000))
         outliers = rng.uniform(8 * sigma, 100 * sigma, 900)  # 31 % outliers
         for start in (0.5, 1.0, 2.0):  # the RANSAC threshold it starts from does not matter
-            assert noise_sigma(np.concatenate([inliers, outliers]), start_px=start) == pytest.approx(sigma, rel=0.06)
+            residuals = np.concatenate([inliers, outliers])
+            assert noise_sigma(residuals, start_px=start) == pytest.approx(sigma, rel=0.06)
     assert noise_sigma(np.zeros(100)) == SIGMA_FLOOR_PX
 
 
@@ -360,7 +372,8 @@ def test_zero_baseline_at_the_8point_step():
     exact = correspondences(baseline=0.0, noise_px=0.0, outlier_rate=0.0, seed=5)
     with pytest.raises(ZeroBaseline, match="share their centre"):
         estimate_fundamental_8point(exact.state["x1"], exact.state["x2"])
-    session = open_session(PIPELINE, "correspondences", {"baseline": 0.0, "noise_px": 0.0, "outlier_rate": 0.0})
+    session = open_session(PIPELINE, "correspondences",
+                           {"baseline": 0.0, "noise_px": 0.0, "outlier_rate": 0.0})
     with pytest.raises(ZeroBaseline):
         session.run("estimate_fundamental_8point")
     assert "F" not in session.state and session.history[-1].status == "failed"
@@ -426,7 +439,8 @@ def test_images_of_different_sizes_without_k(tmp_path):
         session.run("estimate_essential")
     with pytest.raises(LabError):
         session.run("recover_pose")
-    assert isinstance(MissingIntrinsics("K1", "x"), InvalidValue) and issubclass(ZeroBaseline, DegenerateInput)
+    assert isinstance(MissingIntrinsics("K1", "x"), InvalidValue)
+    assert issubclass(ZeroBaseline, DegenerateInput)
     assert issubclass(DegenerateInput, StepFailed)
 
 
@@ -549,7 +563,8 @@ def test_normalization_matters_on_noisy_data():
 
 
 def test_normalized_eight_point_is_invariant_to_image_similarities():
-    """Move and scale both images: the normalized F maps back to the same epipolar geometry, the plain one not."""
+    """Move and scale both images: the normalized F maps back to the same epipolar geometry, the plain
+    one does not."""
     loaded = correspondences(outlier_rate=0.0, noise_px=1.0, seed=14)
     x1, x2, truth = loaded.state["x1"], loaded.state["x2"], loaded.truth
     S1 = np.array([[2.0, 0.0, 1000.0], [0.0, 2.0, -500.0], [0.0, 0.0, 1.0]])
@@ -580,7 +595,8 @@ def test_eight_point_batched_equals_one_by_one(noisy):
     samples = np.random.default_rng(1).choice(len(x1), (5, 8))
     batched = eight_point(x1[samples], x2[samples])
     for k in range(5):
-        np.testing.assert_allclose(unit(batched[k]), unit(eight_point(x1[samples[k]], x2[samples[k]])), atol=1e-9)
+        one = eight_point(x1[samples[k]], x2[samples[k]])
+        np.testing.assert_allclose(unit(batched[k]), unit(one), atol=1e-9)
 
 
 # --- 4. RANSAC --------------------------------------------------------------------------------------
@@ -636,23 +652,23 @@ def test_ransac_threshold_and_error_controls(noisy):
 
 
 def test_ransac_refinement_lowers_the_sampson_error_of_its_inliers():
-    from lab.modules.epipolar import _sampson_weighted_refit
-
     for seed in range(5):
         loaded = correspondences(seed=30 + seed)
         x1, x2 = loaded.state["x1"], loaded.state["x2"]
         plain = estimate_fundamental_ransac(x1, x2, refine=False, rng=np.random.default_rng(0))
         a, b = x1[plain.inliers], x2[plain.inliers]
-        refit = _sampson_weighted_refit(plain.F, a, b)
+        refit = sampson_refit(plain.F, x1, x2, plain.inliers)
         assert np.sum(sampson_distance(refit, a, b) ** 2) < np.sum(sampson_distance(plain.F, a, b) ** 2)
-        assert np.linalg.svd(refit, compute_uv=False)[2] < 1e-12 and np.linalg.norm(refit) == pytest.approx(1.0)
+        assert np.linalg.svd(refit, compute_uv=False)[2] < 1e-12
+        assert np.linalg.norm(refit) == pytest.approx(1.0)
 
 
 # --- distances, lines, epipoles ---------------------------------------------------------------------
 def test_sampson_distance_is_the_root_of_cv2_sampson_distance(noisy):
     F, x1, x2 = noisy.truth["F"], noisy.state["x1"][:50], noisy.state["x2"][:50]
     ours = sampson_distance(F, x1, x2)
-    theirs = [cv2.sampsonDistance(np.append(a, 1.0), np.append(b, 1.0), F) for a, b in zip(x1, x2)]
+    theirs = [cv2.sampsonDistance(np.append(a, 1.0), np.append(b, 1.0), F)
+              for a, b in zip(x1, x2, strict=True)]
     np.testing.assert_allclose(ours**2, theirs, rtol=1e-9)
     assert sampson_distance(np.stack([F, 2 * F]), x1, x2).shape == (2, 50)
     np.testing.assert_allclose(sampson_distance(3 * F, x1, x2), ours)  # scale-free
@@ -675,7 +691,8 @@ def test_epipolar_lines_match_compute_correspond_epilines(noisy):
         theirs = cv2.computeCorrespondEpilines(points.reshape(-1, 1, 2), image, F).reshape(-1, 3)
         np.testing.assert_allclose(epipolar_lines(F, points, image=image), theirs, atol=1e-6)
     lines = epipolar_lines(F, noisy.truth["x1_exact"], image=1)
-    np.testing.assert_allclose(np.sum(lines[:, :2] * noisy.truth["x2_exact"], axis=1) + lines[:, 2], 0, atol=1e-9)
+    signed = np.sum(lines[:, :2] * noisy.truth["x2_exact"], axis=1) + lines[:, 2]
+    np.testing.assert_allclose(signed, 0, atol=1e-9)
 
 
 def test_epipoles_are_the_images_of_the_camera_centres(clean):
@@ -725,7 +742,8 @@ def test_epipolar_lines_step_values(corr_session):
 
 def test_epipolar_lines_of_an_arbitrary_matrix_report_its_rank(corr_session):
     state = corr_session.state
-    result = compute_epipolar_lines(np.eye(3) + 0.01, state["x1"], state["x2"], state["images"], None, num_lines=5)
+    result = compute_epipolar_lines(np.eye(3) + 0.01, state["x1"], state["x2"], state["images"], None,
+                                    num_lines=5)
     assert result.rank_of_F == 3 and result.lines_drawn == 5
 
 
@@ -788,7 +806,8 @@ def test_recover_pose_reads_the_candidates_and_can_be_told_which(corr_session):
     session.run_until("recover_pose", {"recover_pose": {"candidate": mirror}})
     session.run("refine_pose")
     assert session.metrics["recover_pose"]["translation_direction_error_deg"] > 179
-    assert session.metrics["refine_pose"]["translation_direction_error_deg"] > 179  # Sampson cannot tell t from -t
+    # Sampson cannot tell t from -t
+    assert session.metrics["refine_pose"]["translation_direction_error_deg"] > 179
     with pytest.raises(InvalidValue, match=r"\(4, 3, 4\)"):
         recover_pose(state["candidates"][:3], *args)
     with pytest.raises(InvalidControl):
@@ -832,7 +851,8 @@ def test_triangulate_matches_cv2_triangulate_points(corr_session):
     P1 = K @ np.hstack([np.eye(3), np.zeros((3, 1))])
     P2 = K @ np.column_stack([R, t])
     homogeneous = cv2.triangulatePoints(P1, P2, state["x1"][inliers].T, state["x2"][inliers].T)
-    np.testing.assert_allclose(state["points3d_dlt"], (homogeneous[:3] / homogeneous[3]).T, rtol=1e-6, atol=1e-9)
+    np.testing.assert_allclose(state["points3d_dlt"], (homogeneous[:3] / homogeneous[3]).T, rtol=1e-6,
+                               atol=1e-9)
     direct = triangulate(state["x1"], state["x2"], R, t, K, K, inliers)
     np.testing.assert_array_equal(direct, state["points3d_dlt"])
 
@@ -851,347 +871,15 @@ def test_refine_points_values(corr_session):
     # colours come from image 1 at x1 (the synthetic dots)
     x1 = state["x1"][state["inliers"]]
     image = state["images"][0].pixels
-    np.testing.assert_allclose(cloud.colors, image[np.round(x1[:, 1]).astype(int), np.round(x1[:, 0]).astype(int)],
-                               atol=1e-6)
+    rows, cols = np.round(x1[:, 1]).astype(int), np.round(x1[:, 0]).astype(int)
+    np.testing.assert_allclose(cloud.colors, image[rows, cols], atol=1e-6)
     assert isinstance(state["reprojection_cost"], Curve)
 
 
 def test_refine_points_checks_its_inputs(corr_session):
     state = corr_session.state
     with pytest.raises(InvalidValue, match="one point per inlier"):
-        refine_points(state["points3d_dlt"][:-1], state["x1"], state["x2"], state["R"], state["t"], state["K1"],
-                      state["K2"], state["images"], state["inliers"])
+        refine_points(state["points3d_dlt"][:-1], state["x1"], state["x2"], state["R"], state["t"],
+                      state["K1"], state["K2"], state["images"], state["inliers"])
     with pytest.raises(InvalidValue, match="rotation"):
         triangulate(state["x1"], state["x2"], 2 * state["R"], state["t"], state["K1"], state["K2"])
-
-
-# --- the fast kernels of RANSAC against their readable oracles -----------------------------------------
-def _slow_sampson_weighted_refit(F, x1, x2, iterations=3):
-    """The readable oracle of ``_sampson_weighted_refit``: Hartley's T, its inverse, homogeneous lines."""
-    from lab.geometry.homogeneous import hartley_normalization
-    from lab.modules.epipolar import _design_matrix
-
-    T1, n1 = hartley_normalization(x1)
-    T2, n2 = hartley_normalization(x2)
-    Fn = np.linalg.inv(T2).T @ F @ np.linalg.inv(T1)
-    A = _design_matrix(n1, n2)
-    h1, h2 = np.column_stack([n1, np.ones(len(n1))]), np.column_stack([n2, np.ones(len(n2))])
-    for _ in range(iterations):
-        Fx1, Ftx2 = h1 @ Fn.T, h2 @ Fn
-        gradient = np.sqrt(Fx1[:, 0] ** 2 + Fx1[:, 1] ** 2 + Ftx2[:, 0] ** 2 + Ftx2[:, 1] ** 2)
-        weighted = A / gradient[:, None]
-        Fn = enforce_rank2(np.linalg.eigh(weighted.T @ weighted)[1][:, 0].reshape(3, 3))
-    F = T2.T @ Fn @ T1
-    return F / np.linalg.norm(F)
-
-
-def test_fast_kernels_equal_their_readable_oracles(noisy):
-    from lab.geometry.homogeneous import hartley_normalization
-    from lab.modules.epipolar import (_design_matrix, _fit_masked, _hartley_fast, _minimal_fundamentals,
-                                      _normal_equations, _normal_equations_py, _sampson_weighted_refit, _similarity)
-
-    x1, x2 = noisy.state["x1"], noisy.state["x2"]
-    inliers = ~noisy.truth["outliers"]
-    samples = np.random.default_rng(3).permutation(len(x1))[:8 * 40].reshape(40, 8)
-    scale, centroid, moved = _hartley_fast(x1[samples])
-    T, expected = hartley_normalization(x1[samples])
-    np.testing.assert_allclose(_similarity(scale, centroid), T, atol=1e-12)
-    np.testing.assert_allclose(moved, expected, atol=1e-12)
-    fast = _minimal_fundamentals(x1[samples], x2[samples])
-    slow = eight_point(x1[samples], x2[samples])
-    for a, b in zip(fast, slow):
-        np.testing.assert_allclose(unit(a), unit(b), atol=1e-9)
-    a, b = x1[inliers], x2[inliers]
-    np.testing.assert_allclose(unit(_fit_masked(x1, x2, inliers)[0]), unit(eight_point(a, b)), atol=1e-10)
-    # the compiled normal equations: the plain-Python loop (their oracle) and NumPy's A^T A agree
-    for F in (np.zeros((3, 3)), noisy.truth["F"]):
-        M, n = _normal_equations(x1, x2, inliers, F)
-        M_py, n_py = _normal_equations_py(x1, x2, inliers, F)
-        np.testing.assert_allclose(M, M_py, rtol=1e-12, atol=1e-12)
-        np.testing.assert_allclose(n, n_py, rtol=1e-12)
-    s1, c1, n1 = _hartley_fast(a)
-    s2, c2, n2 = _hartley_fast(b)
-    A = _design_matrix(n1, n2)
-    M, n = _normal_equations(x1, x2, inliers, np.zeros((3, 3)))
-    np.testing.assert_allclose(M, A.T @ A, rtol=1e-10, atol=1e-9)
-    np.testing.assert_allclose(n, [s1, *c1, s2, *c2], rtol=1e-12)
-    start = eight_point(a, b)
-    np.testing.assert_allclose(unit(_sampson_weighted_refit(start, a, b)),
-                               unit(_slow_sampson_weighted_refit(start, a, b)), atol=1e-10)
-
-
-def test_homography_screen_against_opencv():
-    """The fast 4-point screen in front of cv2.findHomography: high on one plane or one centre, low on a volume."""
-    from lab.modules.epipolar import _best_homography_share, _homographies_4point
-
-    x = np.random.default_rng(0).uniform(0, 600, (4, 4, 2))
-    y = x + np.random.default_rng(1).normal(0, 20, x.shape)
-    for a, b, H in zip(x, y, _homographies_4point(x, y)):
-        expected = cv2.getPerspectiveTransform(a.astype(np.float32), b.astype(np.float32))
-        np.testing.assert_allclose(H / H[2, 2], expected, rtol=1e-4, atol=1e-6)
-    for options, low, high in (({"structure": "plane"}, 0.9, 1.0), ({"baseline": 0.0}, 0.9, 1.0),
-                               ({"structure": "plane", "noise_px": 1.0}, 0.7, 1.0), ({}, 0.0, 0.3),
-                               ({"noise_px": 2.0}, 0.0, 0.3)):
-        loaded = correspondences(outlier_rate=0.0, **options, seed=21)
-        share = _best_homography_share(loaded.state["x1"][:200], loaded.state["x2"][:200], 4.0)
-        assert low <= share <= high, options
-
-
-def test_compiled_ransac_kernels_equal_their_readable_oracles(noisy):
-    """The compiled post-processing of RANSAC against the NumPy forms it replaces (and its own Python form)."""
-    from lab.modules.epipolar import (_Scorer, _best_homography_share, _count_inliers, _count_inliers_py,
-                                      _fit_masked, _fixed_samples, _minimal_fundamentals,
-                                      _minimal_fundamentals_compiled, _minimal_fundamentals_py, _rank2,
-                                      _homography_share, _homography_share_py, _inliers, _inliers_py,
-                                      _local_optimization, _local_optimization_py, _local_optimization_reference,
-                                      _noise_sigma, _noise_sigma_py, _refit, _refit_py, _sampson_distances,
-                                      _sampson_distances_py, _sampson_refit, _solve_in_place, _solve_in_place_py,
-                                      _transform_fundamental, _transform_fundamental_py,
-                                      _truncated_variance_factor, noise_sigma)
-
-    x1, x2 = noisy.state["x1"], noisy.state["x2"]
-    rng = np.random.default_rng(5)
-    guesses = [noisy.truth["F"], eight_point(x1, x2), rng.normal(size=(3, 3))]
-    for F in guesses:
-        for error in ("sampson", "epipolar"):
-            for threshold in (0.5, 1.0, 3.0):
-                expected = _Scorer(x1, x2, error, threshold).inliers(F)
-                np.testing.assert_array_equal(_inliers(x1, x2, F, threshold**2, error == "sampson"), expected)
-        np.testing.assert_allclose(_sampson_distances(F, x1, x2), sampson_distance(F, x1, x2), rtol=1e-10)
-    # the minimal solver: the batched NumPy form (QR of A^T, SVD) and the 8-point algorithm of each sample
-    samples = np.random.default_rng(3).permutation(len(x1))[:8 * 40].reshape(40, 8)
-    compiled = _minimal_fundamentals_compiled(x1, x2, samples)
-    np.testing.assert_allclose(compiled, _minimal_fundamentals(x1[samples], x2[samples]), atol=1e-9)  # same sign
-    for a, b in zip(compiled, eight_point(x1[samples], x2[samples])):
-        np.testing.assert_allclose(unit(a), unit(b), atol=1e-9)
-    np.testing.assert_allclose(_minimal_fundamentals_py(x1, x2, samples[:3]), compiled[:3], atol=1e-12)
-    for F in guesses:
-        np.testing.assert_allclose(_rank2(F), enforce_rank2(F), atol=1e-12)
-    batch = np.stack(guesses + [np.full((3, 3), np.nan)])
-    for error in ("sampson", "epipolar"):
-        scorer = _Scorer(x1, x2, error, 1.5)
-        expected = np.append(scorer.counts(batch[:-1]), -1)  # a non-finite F scores -1
-        np.testing.assert_array_equal(_count_inliers(x1, x2, batch, 2.25, error == "sampson"), expected)
-        np.testing.assert_array_equal(_count_inliers_py(x1[:40], x2[:40], batch, 2.25, error == "sampson"),
-                                      _count_inliers(x1[:40], x2[:40], batch, 2.25, error == "sampson"))
-    few = slice(0, 40)  # the interpreted Python forms are slow: a few pairs
-    np.testing.assert_array_equal(_inliers_py(x1[few], x2[few], guesses[0], 1.0, True),
-                                  _inliers(x1[few], x2[few], guesses[0], 1.0, True))
-    np.testing.assert_allclose(_sampson_distances_py(guesses[1], x1[few], x2[few]),
-                               _sampson_distances(guesses[1], x1[few], x2[few]), rtol=1e-12)
-    # Sampson distances where the gradient vanishes: NumPy's 0/0 = nan and r/0 = inf
-    zero = np.zeros((3, 3))
-    zero[2, 2] = 1.0
-    with np.errstate(divide="ignore", invalid="ignore"):
-        np.testing.assert_array_equal(_sampson_distances(zero, x1[:3], x2[:3]), sampson_distance(zero, x1[:3], x2[:3]))
-    # T2^T F T1 written out
-    G = rng.normal(size=(3, 3))
-    T1 = np.array([[2.0, 0.0, 0.3], [0.0, 2.0, -0.7], [0.0, 0.0, 1.0]])
-    T2 = np.array([[0.5, 0.0, 1.1], [0.0, 0.5, 0.2], [0.0, 0.0, 1.0]])
-    for transform in (_transform_fundamental, _transform_fundamental_py):
-        np.testing.assert_allclose(transform(G, 2.0, np.array([0.3, -0.7]), 0.5, np.array([1.1, 0.2])),
-                                   T2.T @ G @ T1, rtol=1e-14)
-    # the refits: unweighted = the 8-point algorithm of the selection, weighted = the readable Sampson refit
-    inliers = ~noisy.truth["outliers"]
-    for weights in (np.zeros((3, 3)), _fit_masked(x1, x2, inliers)[1]):
-        F_numpy, Fn_numpy, n_numpy = _fit_masked(x1, x2, inliers, None if not weights.any() else weights)
-        for refit in (_refit, _refit_py):
-            F_fast, Fn_fast, n_fast = refit(x1, x2, inliers, weights)
-            np.testing.assert_allclose(unit(F_fast), unit(F_numpy), atol=1e-10)
-            np.testing.assert_allclose(unit(Fn_fast), unit(Fn_numpy), atol=1e-10)
-            np.testing.assert_allclose(n_fast, n_numpy, rtol=1e-12)
-    a, b = x1[inliers], x2[inliers]
-    start = eight_point(a, b)
-    np.testing.assert_allclose(unit(_sampson_refit(start, x1, x2, inliers, 3)),
-                               unit(_slow_sampson_weighted_refit(start, a, b)), atol=1e-10)
-    # local optimization from a minimal sample's F: same F and inliers as the NumPy loop, compiled or not
-    sample = np.flatnonzero(inliers)[:8]
-    F0 = eight_point(x1[sample], x2[sample])
-    for error in ("sampson", "epipolar"):
-        scorer = _Scorer(x1, x2, error, 1.0)
-        F_ref, mask_ref = _local_optimization_reference(F0, x1, x2, scorer)
-        for lo in (_local_optimization, _local_optimization_py):
-            F_lo, mask_lo = lo(F0, x1, x2, 1.0, error == "sampson")
-            np.testing.assert_array_equal(mask_lo, mask_ref)
-            np.testing.assert_allclose(unit(F_lo), unit(F_ref), atol=1e-10)
-    # the homography screen and the noise scale
-    for options in ({"structure": "plane"}, {"baseline": 0.0}, {}, {"noise_px": 2.0}):
-        loaded = correspondences(outlier_rate=0.0, **options, seed=21)
-        p, q = loaded.state["x1"][:200], loaded.state["x2"][:200]
-        picks = _fixed_samples(len(p), 4, 20)
-        assert _homography_share(p, q, picks, 4.0) == pytest.approx(_best_homography_share(p, q, 4.0), abs=0.011)
-        small = _fixed_samples(30, 4, 20)
-        assert _homography_share_py(p[:30], q[:30], small, 4.0) == _homography_share(p[:30], q[:30], small, 4.0)
-    repeated = np.array([[0, 0, 1, 2]])  # a singular sample: -1, and the caller falls back on the NumPy form
-    assert _homography_share(p, q, repeated, 4.0) == -1.0
-    A, rhs = rng.normal(size=(8, 8)), rng.normal(size=8)
-    np.testing.assert_allclose(_solve_in_place(A.copy(), rhs.copy()), np.linalg.solve(A, rhs), rtol=1e-10)
-    np.testing.assert_allclose(_solve_in_place_py(A.copy(), rhs.copy()), np.linalg.solve(A, rhs), rtol=1e-10)
-    A[:, 2] = 0.0  # singular: an exactly zero pivot
-    assert np.all(np.isnan(_solve_in_place(A.copy(), rhs.copy())))
-    with np.errstate(divide="ignore", invalid="ignore"):
-        distances = sampson_distance(noisy.truth["F"], x1, x2)
-    finite = np.abs(distances[np.isfinite(distances)])
-    for start_px in (0.1, 1.0, 5.0):
-        start = max(1.4826 * np.median(finite), start_px, 0.01)
-        assert _noise_sigma(finite, start, 3.0, _truncated_variance_factor(3.0), 30, 0.01) == \
-            pytest.approx(noise_sigma(distances, start_px=start_px), rel=1e-9)
-        assert _noise_sigma_py(finite, start, 3.0, _truncated_variance_factor(3.0), 30, 0.01) == \
-            pytest.approx(noise_sigma(distances, start_px=start_px), rel=1e-9)
-    # the collinearity screen: the RMS distance from the best line, as the SVD of the centred points says
-    from lab.modules.epipolar import _distance_from_best_line, _distance_from_best_line_py
-
-    for off_line in (0.0, 0.01, 1.0, 30.0):
-        t = rng.uniform(-300, 300, 200)
-        points = np.column_stack([320 + t * 0.8, 240 + t * 0.6])
-        points += np.outer(rng.normal(size=200), [-0.6, 0.8]) * off_line
-        mask = rng.random(200) < 0.7
-        centred = points[mask] - points[mask].mean(axis=0)
-        expected = np.linalg.svd(centred, compute_uv=False)[1] / np.sqrt(mask.sum())
-        assert _distance_from_best_line(points, mask) == pytest.approx(expected, rel=1e-6, abs=1e-5)
-        assert _distance_from_best_line_py(points, mask) == pytest.approx(_distance_from_best_line(points, mask),
-                                                                          rel=1e-12, abs=1e-12)
-
-
-def test_ransac_gives_the_same_answer_through_the_numpy_oracles(noisy, rendered_session):
-    """The whole step with its compiled parts swapped for the readable NumPy forms: the same inliers and F."""
-    import lab.modules.epipolar as module
-
-    def numpy_local_optimization(F, x1, x2, t2, sampson):
-        return module._local_optimization_reference(F, x1, x2, module._Scorer(x1, x2, "sampson" if sampson else
-                                                                              "epipolar", np.sqrt(t2)))
-
-    def numpy_sampson_refit(F, x1, x2, mask, iterations):
-        return module._sampson_weighted_refit(F, x1[mask], x2[mask], iterations)
-
-    def numpy_inliers(x1, x2, F, t2, sampson):
-        return module._Scorer(x1, x2, "sampson" if sampson else "epipolar", np.sqrt(t2)).inliers(F)
-
-    def numpy_counts(x1, x2, F, t2, sampson):
-        finite = np.all(np.isfinite(F), axis=(1, 2))
-        scorer = module._Scorer(x1, x2, "sampson" if sampson else "epipolar", np.sqrt(t2))
-        return np.where(finite, scorer.counts(np.where(finite[:, None, None], F, 0.0)), -1)
-
-    def numpy_minimal(x1, x2, samples):
-        with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
-            return module._minimal_fundamentals(x1[samples], x2[samples])
-
-    pairs = [(noisy.state["x1"], noisy.state["x2"]), (rendered_session.state["x1"], rendered_session.state["x2"])]
-    fast = [estimate_fundamental_ransac(a, b, rng=np.random.default_rng(4)) for a, b in pairs]
-    with pytest.MonkeyPatch.context() as patch:
-        patch.setattr(module, "_local_optimization", numpy_local_optimization)
-        patch.setattr(module, "_sampson_refit", numpy_sampson_refit)
-        patch.setattr(module, "_inliers", numpy_inliers)
-        patch.setattr(module, "_count_inliers", numpy_counts)
-        patch.setattr(module, "_minimal_fundamentals_compiled", numpy_minimal)
-        patch.setattr(module, "_sampson_distances", module.sampson_distance)
-        slow = [estimate_fundamental_ransac(a, b, rng=np.random.default_rng(4)) for a, b in pairs]
-    for f, s in zip(fast, slow):
-        np.testing.assert_array_equal(f.inliers, s.inliers)
-        assert f.iterations == s.iterations
-        np.testing.assert_allclose(unit(f.F), unit(s.F), atol=1e-9)
-        assert f.sampson_rms_px == pytest.approx(s.sampson_rms_px, rel=1e-9)
-
-
-# --- the fast matcher against its float64 reference ---------------------------------------------------
-def _assert_same_neighbours(query, train, chunk=1024):
-    from lab.modules.epipolar import nearest_neighbours_reference
-
-    first, d1, d2, back = nearest_neighbours(query, train, chunk=chunk)
-    first_ref, d1_ref, d2_ref, back_ref = nearest_neighbours_reference(query, train, chunk=chunk)
-    np.testing.assert_array_equal(first, first_ref)
-    np.testing.assert_array_equal(back, back_ref)
-    # both compute |q|^2 + |t|^2 - 2 q.t in float64: equal within its rounding, ~1e-16 (|q|^2 + |t|^2)
-    qq = np.sum(np.asarray(query, np.float64) ** 2, axis=1)
-    scale = qq + np.max(np.sum(np.asarray(train, np.float64) ** 2, axis=1))
-    np.testing.assert_array_less(np.abs(d1**2 - d1_ref**2), 1e-13 * scale)
-    finite = np.isfinite(d2_ref)
-    np.testing.assert_array_equal(np.isfinite(d2), finite)
-    np.testing.assert_array_less(np.abs(d2[finite]**2 - d2_ref[finite]**2), 1e-13 * scale[finite])
-    return first, d1, d2, back
-
-
-def test_fast_matcher_equals_the_float64_reference_on_sift(rendered_session):
-    """SIFT descriptors of a rendered pair: the float32 matcher gives the float64 reference's neighbours and
-    distances, so match_features keeps exactly the same matches."""
-    from lab.modules.epipolar import nearest_neighbours_reference
-
-    keypoints, descriptors = rendered_session.state["keypoints"], rendered_session.state["descriptors"]
-    query, train = descriptors[keypoints.view == 0], descriptors[keypoints.view == 1]
-    assert len(query) > 500 and len(train) > 500
-    for chunk in (1024, 97):
-        first, d1, d2, back = _assert_same_neighbours(query, train, chunk)
-    _, d1_ref, d2_ref, back_ref = nearest_neighbours_reference(query, train)
-    for ratio in (0.6, 0.8, 0.95):
-        np.testing.assert_array_equal(d1 < ratio * d2, d1_ref < ratio * d2_ref)
-    result = match_features(keypoints, descriptors)
-    np.testing.assert_array_equal(result.matches, rendered_session.state["matches"])
-    index1, index2 = np.flatnonzero(keypoints.view == 0), np.flatnonzero(keypoints.view == 1)
-    keep = (d1_ref < 0.8 * d2_ref) & (back_ref[first] == np.arange(len(query)))
-    np.testing.assert_array_equal(result.matches, np.column_stack([index1[keep], index2[first[keep]]]))
-
-
-def test_fast_matcher_on_adversarial_near_ties():
-    """Near-ties that float32 cannot separate (relative gaps of 1e-9, far below its 6e-8 resolution) but float64
-    can: the float32 pass must hand them to the float64 re-check, for the nearest, the second and the back match."""
-    rng = np.random.default_rng(0)
-    base = rng.uniform(0, 200, (60, 128))  # |q|^2 ~ 1.7e6: float32 distances are off by ~0.1, float64 by ~1e-9
-
-    def shell(centre, gaps):
-        """Points around ``centre`` at squared distances ``400 + gaps`` (gaps ~1e-3: float32 ties them)."""
-        directions = rng.normal(size=(len(gaps), 128))
-        directions /= np.linalg.norm(directions, axis=1, keepdims=True)
-        return centre + directions * np.sqrt(400.0 + gaps)[:, None]
-
-    # each query: 40 train rows at nearly the same distance; the nearest and second are known (the smallest gaps)
-    queries, train, nearest, runner_up = base[:8], [], [], []
-    for i, q in enumerate(queries):
-        gaps = rng.permutation(np.linspace(1e-3, 4e-2, 40))
-        train.append(shell(q, gaps))
-        nearest.append(40 * i + int(np.argmin(gaps)))
-        runner_up.append(40 * i + int(np.argsort(gaps)[1]))
-    train = np.concatenate(train)
-    first, d1, d2, back = _assert_same_neighbours(queries, train)
-    np.testing.assert_array_equal(first, nearest)
-    assert np.all(d2 - d1 < 1e-4)  # really near-ties: 1e-3 in squared distance
-    for chunk in (3, 1):  # the same across blocks
-        _assert_same_neighbours(queries, train, chunk)
-    # each train row: 30 queries at nearly the same distance (the back match of the mutual check)
-    rows = base[8:12]
-    crowd = np.concatenate([shell(t, rng.permutation(np.linspace(1e-3, 3e-2, 30))) for t in rows])
-    _, _, _, back = _assert_same_neighbours(crowd, rows, chunk=7)
-    distances = np.sum((crowd[:, None, :] - rows[None, :, :]) ** 2, axis=2)
-    np.testing.assert_array_equal(back, np.argmin(distances, axis=0))
-    # the ratio test right at its boundary: float64 distances decide, as in the reference
-    query3 = np.zeros((1, 4))
-    train3 = np.array([[8.0, 0, 0, 0], [0, 10.0 * (1 + 1e-12), 0, 0], [0, 0, 0, 50.0]])
-    first, d1, d2, _ = _assert_same_neighbours(query3, train3)
-    assert first[0] == 0 and bool(d1[0] < 0.8 * d2[0])
-    # exact duplicates in float64: lowest index first, like the reference's back matches
-    dup = np.concatenate([base[:5], base[:5]])
-    first, _, _, back = nearest_neighbours(base[:5], dup)
-    np.testing.assert_array_equal(first, np.arange(5))
-    _assert_same_neighbours(dup, base[:5])
-
-
-def test_two_nearest_scan_kernel_equals_its_python_form():
-    from lab.modules.epipolar import _two_nearest_scan, _two_nearest_scan_py
-
-    rng = np.random.default_rng(2)
-    dots = rng.normal(size=(23, 31)).astype(np.float32)
-    dots[3, 7] = dots[3, 8]  # an exact tie
-    qq, tt = rng.uniform(5, 6, 23), rng.uniform(5, 6, 31)
-    outputs = []
-    for scan in (_two_nearest_scan, _two_nearest_scan_py):
-        out = [np.empty(23, np.int64), np.empty(23, np.int64), np.empty(23, bool), np.full(31, np.inf),
-               np.zeros(31, np.int64), np.full(31, np.inf)]
-        for start in (0, 10):  # two blocks, the column state carried over
-            rows = slice(start, min(start + 10, 23) if start == 0 else 23)
-            scan(dots[rows], qq[rows], tt, start, 1e-3, out[0][rows], out[1][rows], out[2][rows], *out[3:])
-        outputs.append(out)
-    for fast, slow in zip(*outputs):
-        np.testing.assert_array_equal(fast, slow)
-    squared = qq[:, None] + tt[None, :] - 2.0 * dots.astype(np.float64)
-    np.testing.assert_array_equal(outputs[0][0], np.argmin(squared, axis=1))
-    np.testing.assert_array_equal(outputs[0][4], np.argmin(squared, axis=0))
-    np.testing.assert_array_equal(outputs[0][3], squared.min(axis=0))
