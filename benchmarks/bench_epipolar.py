@@ -61,7 +61,9 @@ import argparse  # noqa: E402
 import json  # noqa: E402
 import time  # noqa: E402
 import timeit  # noqa: E402
+from collections.abc import Callable  # noqa: E402
 from pathlib import Path  # noqa: E402
+from typing import Any  # noqa: E402
 
 import cv2  # noqa: E402
 import numpy as np  # noqa: E402
@@ -101,31 +103,35 @@ def angle_errors(R: np.ndarray, t: np.ndarray, truth: dict) -> tuple[float, floa
 def ours(session, x1, x2, seed: int, threshold: float = THRESHOLD_PX):
     ransac = estimate_fundamental_ransac(x1, x2, threshold_px=threshold, rng=np.random.default_rng(seed))
     E = estimate_essential(ransac.F, session.state["images"], session.state["K1"], session.state["K2"])
-    pose = recover_pose(decompose_essential(E), x1, x2, session.state["K1"], session.state["K2"], ransac.inliers)
+    K1, K2 = session.state["K1"], session.state["K2"]
+    pose = recover_pose(decompose_essential(E), x1, x2, K1, K2, ransac.inliers)
     refined = refine_pose(pose, x1, x2, session.state["K1"], session.state["K2"], ransac.inliers)
     return ransac, refined.R, refined.t
 
 
-def opencv_essential(x1, x2, K, threshold: float = THRESHOLD_PX):
+def opencv_essential(x1, x2, K, threshold: float = THRESHOLD_PX) -> tuple[np.ndarray, np.ndarray]:
     E, mask = cv2.findEssentialMat(x1, x2, K, cv2.RANSAC, 0.999, threshold)
     _, R, t, _ = cv2.recoverPose(E[:3], x1, x2, K, mask=mask.copy())
     return R, t.ravel()
 
 
-def opencv_fundamental(x1, x2, K, threshold: float = THRESHOLD_PX, method=cv2.FM_RANSAC):
+def opencv_fundamental(x1, x2, K, threshold: float = THRESHOLD_PX,
+                       method=cv2.FM_RANSAC) -> tuple[np.ndarray, np.ndarray]:
     F, mask = cv2.findFundamentalMat(x1, x2, method, threshold, 0.99)
     E = K.T @ F[:3] @ K
     _, R, t, _ = cv2.recoverPose(E, x1, x2, K, mask=mask.copy())
     return R, t.ravel()
 
 
-OPENCV = {"cv_e": opencv_essential, "cv_f": opencv_fundamental,
-          "cv_magsac": lambda x1, x2, K, threshold: opencv_fundamental(x1, x2, K, threshold, cv2.USAC_MAGSAC)}
+OPENCV: dict[str, Callable[..., tuple[np.ndarray, np.ndarray]]] = {
+    "cv_e": opencv_essential, "cv_f": opencv_fundamental,
+    "cv_magsac": lambda x1, x2, K, threshold: opencv_fundamental(x1, x2, K, threshold, cv2.USAC_MAGSAC)}
 
 
 def compare_scene(dataset: str, options: dict, seed: int, repeat: int, threshold: float = THRESHOLD_PX,
                   also: float | None = None) -> dict:
-    """One scene: pose errors of every method at ``threshold`` (and at ``also``, without timing), RANSAC times."""
+    """One scene: pose errors of every method at ``threshold`` (and at ``also``, without timing), RANSAC
+    times."""
     session = open_session(PIPELINE, dataset, dict(options, seed=seed), seed=seed)
     if "x1" not in session.state:
         session.run("detect_features")
@@ -133,7 +139,8 @@ def compare_scene(dataset: str, options: dict, seed: int, repeat: int, threshold
     x1, x2, K = session.state["x1"], session.state["x2"], session.state["K1"]
     truth = session.truth
     ransac, R, t = ours(session, x1, x2, seed, threshold)
-    row = {"seed": seed, "matches": len(x1), "inliers": int(ransac.inliers.sum()), "iterations": ransac.iterations}
+    row = {"seed": seed, "matches": len(x1), "inliers": int(ransac.inliers.sum()),
+           "iterations": ransac.iterations}
     row["rot_ours"], row["trans_ours"] = angle_errors(R, t, truth)
     for name, method in OPENCV.items():
         row[f"rot_{name}"], row[f"trans_{name}"] = angle_errors(*method(x1, x2, K, threshold), truth)
@@ -156,7 +163,8 @@ def compare_scene(dataset: str, options: dict, seed: int, repeat: int, threshold
 
 def summarize(rows: list[dict]) -> dict:
     med = lambda key: float(np.median([r[key] for r in rows]))  # noqa: E731
-    keys = ["rot_ours", "trans_ours", "time_ratio", "time_ratio_magsac", "t_ours_ms", "t_cv_ms", "t_magsac_ms"]
+    keys = ["rot_ours", "trans_ours", "time_ratio", "time_ratio_magsac", "t_ours_ms", "t_cv_ms",
+            "t_magsac_ms"]
     keys += [f"{kind}_{name}" for name in OPENCV for kind in ("rot", "trans")]
     out = {key: med(key) for key in keys}
     out["rot_cv"] = min(out[f"rot_{name}"] for name in OPENCV)
@@ -170,19 +178,20 @@ def summarize(rows: list[dict]) -> dict:
 
 def print_table(title: str, rows: list[dict], summary: dict) -> None:
     print(f"\n{title}")
-    print(f"{'seed':>4} {'match':>6} {'inl':>5} {'iter':>5} | {'rot ours':>8} {'cv E':>7} {'cv F':>7} {'MAGSAC':>7} | "
-          f"{'t ours':>7} {'cv E':>7} {'cv F':>7} {'MAGSAC':>7} | {'ms ours':>8} {'ms cv':>7} {'ms MAG':>7} "
-          f"{'ratio':>6}")
+    print(f"{'seed':>4} {'match':>6} {'inl':>5} {'iter':>5} | {'rot ours':>8} {'cv E':>7} {'cv F':>7} "
+          f"{'MAGSAC':>7} | {'t ours':>7} {'cv E':>7} {'cv F':>7} {'MAGSAC':>7} | {'ms ours':>8} "
+          f"{'ms cv':>7} {'ms MAG':>7} {'ratio':>6}")
     for r in rows:
-        print(f"{r['seed']:>4} {r['matches']:>6} {r['inliers']:>5} {r['iterations']:>5} | {r['rot_ours']:8.3f} "
-              f"{r['rot_cv_e']:7.3f} {r['rot_cv_f']:7.3f} {r['rot_cv_magsac']:7.3f} | {r['trans_ours']:7.3f} "
-              f"{r['trans_cv_e']:7.3f} {r['trans_cv_f']:7.3f} {r['trans_cv_magsac']:7.3f} | {r['t_ours_ms']:8.2f} "
-              f"{r['t_cv_ms']:7.2f} {r['t_magsac_ms']:7.2f} {r['time_ratio']:6.2f}")
+        print(f"{r['seed']:>4} {r['matches']:>6} {r['inliers']:>5} {r['iterations']:>5} | "
+              f"{r['rot_ours']:8.3f} {r['rot_cv_e']:7.3f} {r['rot_cv_f']:7.3f} {r['rot_cv_magsac']:7.3f} | "
+              f"{r['trans_ours']:7.3f} {r['trans_cv_e']:7.3f} {r['trans_cv_f']:7.3f} "
+              f"{r['trans_cv_magsac']:7.3f} | {r['t_ours_ms']:8.2f} {r['t_cv_ms']:7.2f} "
+              f"{r['t_magsac_ms']:7.2f} {r['time_ratio']:6.2f}")
     s = summary
     print(f"{'median':>23} | {s['rot_ours']:8.3f} {s['rot_cv_e']:7.3f} {s['rot_cv_f']:7.3f} "
-          f"{s['rot_cv_magsac']:7.3f} | "
-          f"{s['trans_ours']:7.3f} {s['trans_cv_e']:7.3f} {s['trans_cv_f']:7.3f} {s['trans_cv_magsac']:7.3f} | "
-          f"{s['t_ours_ms']:8.2f} {s['t_cv_ms']:7.2f} {s['t_magsac_ms']:7.2f} {s['time_ratio']:6.2f}")
+          f"{s['rot_cv_magsac']:7.3f} | {s['trans_ours']:7.3f} {s['trans_cv_e']:7.3f} {s['trans_cv_f']:7.3f} "
+          f"{s['trans_cv_magsac']:7.3f} | {s['t_ours_ms']:8.2f} {s['t_cv_ms']:7.2f} {s['t_magsac_ms']:7.2f} "
+          f"{s['time_ratio']:6.2f}")
 
 
 def compare_leuven(repeat: int) -> dict:
@@ -194,7 +203,8 @@ def compare_leuven(repeat: int) -> dict:
     mask_cv = mask_cv.ravel() > 0
     rms = lambda F, m: float(np.sqrt(np.mean(sampson_distance(F, x1[m], x2[m]) ** 2)))  # noqa: E731
     rms_cv = rms(F_cv, mask_cv)
-    out = {"matches": len(x1), "opencv_inliers": int(mask_cv.sum()), "opencv_sampson_rms_px": rms_cv}
+    out: dict[str, Any] = {"matches": len(x1), "opencv_inliers": int(mask_cv.sum()),
+                           "opencv_sampson_rms_px": rms_cv}
     for error in ("sampson", "epipolar"):
         result = estimate_fundamental_ransac(x1, x2, threshold_px=THRESHOLD_PX, error=error,
                                              rng=np.random.default_rng(0))
@@ -202,11 +212,13 @@ def compare_leuven(repeat: int) -> dict:
         out[error] = {"inliers": int(m.sum()), "overlap": float((m & mask_cv).sum() / (m | mask_cv).sum()),
                       "sampson_rms_px": rms(result.F, m), "sampson_rms_ratio": rms(result.F, m) / rms_cv}
     rng = np.random.default_rng(0)
-    t_ours = median_seconds(lambda: estimate_fundamental_ransac(x1, x2, threshold_px=THRESHOLD_PX, rng=rng), repeat)
+    t_ours = median_seconds(lambda: estimate_fundamental_ransac(x1, x2, threshold_px=THRESHOLD_PX, rng=rng),
+                            repeat)
     t_cv = median_seconds(lambda: cv2.findFundamentalMat(x1, x2, cv2.FM_RANSAC, THRESHOLD_PX, 0.99), repeat)
     out["time_ratio"] = t_ours / t_cv
     out["t_ours_ms"], out["t_cv_ms"] = 1000 * t_ours, 1000 * t_cv
-    print(f"\nleuvenA/B: {len(x1)} matches; OpenCV FM_RANSAC {int(mask_cv.sum())} inliers, Sampson RMS {rms_cv:.4f} px")
+    print(f"\nleuvenA/B: {len(x1)} matches; OpenCV FM_RANSAC {int(mask_cv.sum())} inliers, Sampson RMS "
+          f"{rms_cv:.4f} px")
     for error in ("sampson", "epipolar"):
         r = out[error]
         print(f"  ours ({error:8s}): {r['inliers']} inliers, overlap {r['overlap']:.3f}, Sampson RMS "
@@ -232,9 +244,11 @@ def compare_easy_pair(repeat: int, seed: int = 0) -> dict:
     keypoints, descriptors = session.state["keypoints"], session.state["descriptors"]
     x1, x2 = session.state["x1"], session.state["x2"]
     rng = np.random.default_rng(seed)
-    ours_result = estimate_fundamental_ransac(x1, x2, threshold_px=THRESHOLD_PX, rng=np.random.default_rng(seed))
+    ours_result = estimate_fundamental_ransac(x1, x2, threshold_px=THRESHOLD_PX,
+                                              rng=np.random.default_rng(seed))
     _, mask_cv = cv2.findFundamentalMat(x1, x2, cv2.FM_RANSAC, THRESHOLD_PX, 0.99)
-    t_ours = median_seconds(lambda: estimate_fundamental_ransac(x1, x2, threshold_px=THRESHOLD_PX, rng=rng), repeat)
+    t_ours = median_seconds(lambda: estimate_fundamental_ransac(x1, x2, threshold_px=THRESHOLD_PX, rng=rng),
+                            repeat)
     t_cv = median_seconds(lambda: cv2.findFundamentalMat(x1, x2, cv2.FM_RANSAC, THRESHOLD_PX, 0.99), repeat)
     d1, d2 = descriptors[keypoints.view == 0], descriptors[keypoints.view == 1]
     matcher = cv2.BFMatcher(cv2.NORM_L2)
@@ -255,12 +269,13 @@ def compare_easy_pair(repeat: int, seed: int = 0) -> dict:
            "match_identical": identical}
     print(f"\nEasy rendered pair ('room', seed {seed}, 640x480): {len(x1)} matches")
     print(f"  RANSAC   ours {out['t_ours_ms']:7.2f} ms ({out['inliers_ours']} inliers, "
-          f"{out['iterations_ours']} samples) | "
-          f"cv2 FM_RANSAC {out['t_cv_ms']:7.2f} ms ({out['inliers_cv']} inliers) | ratio {out['time_ratio']:.2f}")
+          f"{out['iterations_ours']} samples) | cv2 FM_RANSAC {out['t_cv_ms']:7.2f} ms ({out['inliers_cv']} "
+          f"inliers) | ratio {out['time_ratio']:.2f}")
     print(f"  matching {len(d1)} x {len(d2)} SIFT: ours {out['t_nn_ms']:7.2f} ms (match_features step "
-          f"{out['t_step_ms']:.2f} ms; float64 reference {out['t_reference_ms']:.2f} ms, identical: {identical}) | "
-          f"cv2 knnMatch k=2 {out['t_knn_ms']:7.2f} ms, + match() for the cross check {out['t_cross_ms']:7.2f} ms | "
-          f"ratio {out['match_time_ratio']:.2f} ({out['match_time_ratio_cross_check']:.2f} with the cross check)")
+          f"{out['t_step_ms']:.2f} ms; float64 reference {out['t_reference_ms']:.2f} ms, identical: "
+          f"{identical}) | cv2 knnMatch k=2 {out['t_knn_ms']:7.2f} ms, + match() for the cross check "
+          f"{out['t_cross_ms']:7.2f} ms | ratio {out['match_time_ratio']:.2f} "
+          f"({out['match_time_ratio_cross_check']:.2f} with the cross check)")
     return out
 
 
@@ -271,11 +286,12 @@ def main() -> None:
     parser.add_argument("--repeat", type=int, default=9, help="timing repeats (median)")
     args = parser.parse_args()
     cv2.setNumThreads(1)
-    corr_rows = [compare_scene("correspondences", SYNTHETIC, seed, args.repeat, SYNTHETIC_THRESHOLD_PX, also=1.0)
-                 for seed in range(args.seeds)]
+    corr_rows = [compare_scene("correspondences", SYNTHETIC, seed, args.repeat, SYNTHETIC_THRESHOLD_PX,
+                               also=1.0) for seed in range(args.seeds)]
     corr = summarize(corr_rows)
-    print_table(f"Synthetic benchmark: correspondences, 400 points, 1 px noise, 30 % outliers, {args.seeds} seeds, "
-                f"threshold {SYNTHETIC_THRESHOLD_PX:g} px for every method (errors in degrees)", corr_rows, corr)
+    print_table(f"Synthetic benchmark: correspondences, 400 points, 1 px noise, 30 % outliers, {args.seeds} "
+                f"seeds, threshold {SYNTHETIC_THRESHOLD_PX:g} px for every method (errors in "
+                "degrees)", corr_rows, corr)
     print(f"  at a 1 px threshold instead: rotation ours {corr['rot_ours_also']:.3f} / best OpenCV "
           f"{corr['rot_cv_also']:.3f} deg, t direction ours {corr['trans_ours_also']:.3f} / best OpenCV "
           f"{corr['trans_cv_also']:.3f} deg")
@@ -293,7 +309,8 @@ def main() -> None:
         # extras
         "rot_err_deg_opencv_essential": corr["rot_cv_e"], "rot_err_deg_opencv_fundamental": corr["rot_cv_f"],
         "rot_err_deg_opencv_magsac": corr["rot_cv_magsac"],
-        "tdir_err_deg_opencv_essential": corr["trans_cv_e"], "tdir_err_deg_opencv_fundamental": corr["trans_cv_f"],
+        "tdir_err_deg_opencv_essential": corr["trans_cv_e"],
+        "tdir_err_deg_opencv_fundamental": corr["trans_cv_f"],
         "tdir_err_deg_opencv_magsac": corr["trans_cv_magsac"],
         "time_ratio_magsac": corr["time_ratio_magsac"],
         "rot_err_deg_ours_1px": corr["rot_ours_also"], "rot_err_deg_opencv_1px": corr["rot_cv_also"],
@@ -302,7 +319,8 @@ def main() -> None:
         "ransac_ms_ours": corr["t_ours_ms"], "ransac_ms_opencv": corr["t_cv_ms"],
         "ransac_ms_magsac": corr["t_magsac_ms"],
         "rendered_rot_err_deg_ours": rendered["rot_ours"], "rendered_rot_err_deg_opencv": rendered["rot_cv"],
-        "rendered_tdir_err_deg_ours": rendered["trans_ours"], "rendered_tdir_err_deg_opencv": rendered["trans_cv"],
+        "rendered_tdir_err_deg_ours": rendered["trans_ours"],
+        "rendered_tdir_err_deg_opencv": rendered["trans_cv"],
         "rendered_time_ratio": rendered["time_ratio"],
         "rendered_ransac_ms_ours": rendered["t_ours_ms"], "rendered_ransac_ms_opencv": rendered["t_cv_ms"],
         "leuven_inlier_overlap_epipolar_error": leuven["epipolar"]["overlap"],
