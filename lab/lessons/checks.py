@@ -6,8 +6,10 @@ reference's on the same data. ``tasks.toml`` names it (``compare = "equal_up_to_
 gives its options (``rtol = 1e-6``), which :func:`check_options` validates at load time.
 
 A **detector** ``detect(got, expected, **options) -> str | None`` recognises a common mistake
-and returns a hint for the student ("F has rank 3: enforce rank 2"), or None. A check lists the
-detectors worth trying (``hints = [{ when = "transposed" }]``); they run only when it fails.
+and returns a hint for the student ("F has rank 3: enforce rank 2"), or None. A lesson defines
+its hints once (``[hints.rank_3] when = "rank_above"``, ``rank = 2``, ``say = "..."``) and a check
+names the ones worth trying (``hints = ["rank_3", "transposed"]``: a detector that needs no
+options is named directly); they run only when it fails.
 
 :func:`structure_problem` checks what came back before any comparison: its type, shape, dtype and
 that it is finite, with the hint a wrong shape suggests.
@@ -19,7 +21,8 @@ import dataclasses
 import inspect
 import math
 from dataclasses import dataclass
-from typing import Any, Callable
+from typing import Any
+from collections.abc import Callable
 
 import numpy as np
 
@@ -96,23 +99,25 @@ def allclose(got: np.ndarray, expected: np.ndarray, *, rtol: float = 1e-6, atol:
                f"(atol {atol:g} + rtol {rtol:g} x |expected|)")
     item = int(worst[0]) if expected.ndim >= 3 and worst else 0
     label = f" (item {item})" if expected.ndim >= 3 else ""
-    return Outcome(passed, summary, show(_pick(expected, item, True)) + label, show(_pick(got, item, True)) + label)
+    return Outcome(passed, summary, show(_pick(expected, item, True)) + label,
+                   show(_pick(got, item, True)) + label)
 
 
-def equal_up_to_scale(got: np.ndarray, expected: np.ndarray, *, rtol: float = 1e-6, items: bool = True) -> Outcome:
+def equal_up_to_scale(got: np.ndarray, expected: np.ndarray, *, rtol: float = 1e-6,
+                      items: bool = True) -> Outcome:
     """Equal after the best scale factor (homographies, F, E): ``min_s |s got - expected| / |expected|``.
 
     With ``items`` (default) each entry of the first axis of a stack (``(M, 3, 3)``) has its own scale.
     """
     g, e = _items(got, items), _items(expected, items)
     errors = np.empty(len(e))
-    for i, (gi, ei) in enumerate(zip(g, e)):
+    for i, (gi, ei) in enumerate(zip(g, e, strict=False)):
         norm = float(gi @ gi)
         if norm == 0.0:
             errors[i] = math.inf
             continue
         scale = float(gi @ ei) / norm
-        errors[i] = float(np.linalg.norm(scale * gi - ei) / max(np.linalg.norm(ei), 1e-300))
+        errors[i] = float(np.linalg.norm(scale * gi - ei) / max(float(np.linalg.norm(ei)), 1e-300))
     worst = int(np.argmax(errors))
     passed = bool(np.all(errors <= rtol))
     label = _item_label(expected, worst, items)
@@ -132,9 +137,10 @@ def _normalized(array: np.ndarray) -> np.ndarray:
 
 def equal_up_to_sign(got: np.ndarray, expected: np.ndarray, *, rtol: float = 1e-6, atol: float = 1e-9,
                      items: bool = True) -> Outcome:
-    """``allclose`` to ``expected`` or to ``-expected`` (each item choosing its sign): null vectors, epipoles."""
+    """``allclose`` to ``expected`` or to ``-expected`` (each item choosing its sign): null vectors,
+    epipoles."""
     g, e = _items(got, items), _items(expected, items)
-    flipped = np.array([np.abs(-gi - ei).max() < np.abs(gi - ei).max() for gi, ei in zip(g, e)])
+    flipped = np.array([np.abs(-gi - ei).max() < np.abs(gi - ei).max() for gi, ei in zip(g, e, strict=False)])
     signs = np.where(flipped, -1.0, 1.0)
     aligned = (g * signs[:, None]).reshape(np.shape(expected)) if np.shape(got) == np.shape(expected) else got
     outcome = allclose(aligned, expected, rtol=rtol, atol=atol)
@@ -149,8 +155,9 @@ def rotation_angle(got: np.ndarray, expected: np.ndarray, *, max_deg: float = 0.
     angles = np.degrees(np.arccos(np.clip(cosine, -1.0, 1.0)))
     worst = int(np.argmax(angles))
     label = f" (item {worst})" if len(angles) > 1 else ""
-    return Outcome(bool(np.all(angles <= max_deg)), f"largest rotation angle between yours and the expected "
-                                                    f"{angles[worst]:.3g} deg{label}; allowed {max_deg:g} deg",
+    return Outcome(bool(np.all(angles <= max_deg)),
+                   f"largest rotation angle between yours and the expected "
+                   f"{angles[worst]:.3g} deg{label}; allowed {max_deg:g} deg",
                    show(e[worst]), show(g[worst]))
 
 
@@ -159,11 +166,13 @@ def relative_error(got: np.ndarray, expected: np.ndarray, *, max_relative: float
     g = np.asarray(got, dtype=np.float64)
     e = np.asarray(expected, dtype=np.float64)
     error = float(np.linalg.norm(g - e) / max(float(np.linalg.norm(e)), 1e-300))
-    return Outcome(error <= max_relative, f"relative error {error:.3g}; allowed {max_relative:g}", show(e), show(g))
+    return Outcome(error <= max_relative, f"relative error {error:.3g}; allowed {max_relative:g}", show(e),
+                   show(g))
 
 
 def psnr(got: np.ndarray, expected: np.ndarray, *, min_db: float, data_range: float = 1.0) -> Outcome:
-    """Peak signal-to-noise ratio of ``got`` against ``expected`` (images in [0, data_range]) at least ``min_db``."""
+    """Peak signal-to-noise ratio of ``got`` against ``expected`` (images in [0, data_range]) at least
+    ``min_db``."""
     g = np.asarray(got, dtype=np.float64)
     e = np.asarray(expected, dtype=np.float64)
     mse = float(np.mean((g - e) ** 2))
@@ -171,7 +180,8 @@ def psnr(got: np.ndarray, expected: np.ndarray, *, min_db: float, data_range: fl
     return Outcome(value >= min_db, f"PSNR {value:.2f} dB; needed at least {min_db:g} dB")
 
 
-def bad_pixel_rate(got: np.ndarray, expected: np.ndarray, *, threshold: float = 2.0, max_rate: float = 0.1) -> Outcome:
+def bad_pixel_rate(got: np.ndarray, expected: np.ndarray, *, threshold: float = 2.0,
+                   max_rate: float = 0.1) -> Outcome:
     """Share of pixels (where ``expected`` is finite) off by more than ``threshold`` at most ``max_rate``."""
     g = np.asarray(got, dtype=np.float64)
     e = np.asarray(expected, dtype=np.float64)
@@ -183,7 +193,8 @@ def bad_pixel_rate(got: np.ndarray, expected: np.ndarray, *, threshold: float = 
 
 
 def below(got: Any, expected: Any, *, bound: float) -> Outcome:
-    """Every entry of ``got`` at most ``bound`` (reprojection error, bad-pixel rate); ``expected`` is shown."""
+    """Every entry of ``got`` at most ``bound`` (reprojection error, bad-pixel rate); ``expected`` is
+    shown."""
     g = np.asarray(got, dtype=np.float64)
     value = float(np.max(g)) if g.size else -math.inf
     return Outcome(bool(value <= bound), f"got {_number(value)}, needed at most {bound:g} "
@@ -203,14 +214,14 @@ def at_most_reference(got: Any, expected: Any, *, factor: float = 1.0, margin: f
     g = float(np.max(np.asarray(got, dtype=np.float64)))
     e = float(np.max(np.asarray(expected, dtype=np.float64)))
     bound = factor * e + margin
-    return Outcome(g <= bound, f"got {_number(g)}; the reference gets {_number(e)}, so at most {_number(bound)} "
-                               f"is accepted ({factor:g} x reference + {margin:g})")
+    return Outcome(g <= bound, f"got {_number(g)}; the reference gets {_number(e)}, so at most "
+                               f"{_number(bound)} is accepted ({factor:g} x reference + {margin:g})")
 
 
 #: Comparisons by the name ``tasks.toml`` uses.
 COMPARISONS: dict[str, Callable[..., Outcome]] = {f.__name__: f for f in (
-    allclose, equal_up_to_scale, equal_up_to_sign, rotation_angle, relative_error, psnr, bad_pixel_rate, below,
-    above, at_most_reference)}
+    allclose, equal_up_to_scale, equal_up_to_sign, rotation_angle, relative_error, psnr, bad_pixel_rate,
+    below, above, at_most_reference)}
 
 
 def check_options(compare: str, options: dict[str, Any]) -> tuple[str, str] | None:
@@ -221,8 +232,8 @@ def check_options(compare: str, options: dict[str, Any]) -> tuple[str, str] | No
         if key not in params:
             return key, f"comparison {compare!r} has no option {key!r}; options are {sorted(params)}"
         default = params[key].default
-        kind = bool if isinstance(default, bool) else (float if default is inspect.Parameter.empty
-                                                        or isinstance(default, (int, float)) else type(default))
+        numeric = default is inspect.Parameter.empty or isinstance(default, (int, float))
+        kind = bool if isinstance(default, bool) else (float if numeric else type(default))
         if kind is bool and not isinstance(value, bool):
             return key, f"must be true or false, got {value!r}"
         if kind is float and (isinstance(value, bool) or not isinstance(value, (int, float))):
@@ -240,7 +251,7 @@ def structure_problem(got: Any, expected: Any, *, what: str) -> str | None:
         if not isinstance(got, np.ndarray):
             return (f"{what} must be a numpy array (np.ndarray), got {type(got).__name__}"
                     + (": wrap it with np.asarray(...)" if isinstance(got, (list, tuple)) else ""))
-        if got.dtype.kind not in "biuf" or got.dtype.kind == "b" and expected.dtype.kind != "b":
+        if got.dtype.kind not in "biuf" or (got.dtype.kind == "b" and expected.dtype.kind != "b"):
             return f"{what} must hold real numbers, got an array of dtype {got.dtype}"
         if got.shape != expected.shape:
             message = f"{what} has shape {got.shape}; expected shape {expected.shape}"
@@ -292,7 +303,8 @@ def as_compared(value: Any) -> np.ndarray:
     """What comparisons see: a float64 array (a typed value compares by its primary array)."""
     if dataclasses.is_dataclass(value) and not isinstance(value, type):
         fields = [getattr(value, f.name) for f in dataclasses.fields(value)]
-        if fields and isinstance(fields[0], tuple) and fields[0] and all(dataclasses.is_dataclass(v) for v in fields[0]):
+        if fields and isinstance(fields[0], tuple) and fields[0] \
+                and all(dataclasses.is_dataclass(v) for v in fields[0]):
             return np.stack([as_compared(v) for v in fields[0]])  # an ImageSet: its images stacked
         arrays = [v for v in fields if isinstance(v, np.ndarray)]
         if not arrays:
@@ -326,7 +338,8 @@ def inverse(got: np.ndarray, expected: np.ndarray, *, rtol: float = 1e-3) -> str
     except np.linalg.LinAlgError:
         return None
     if equal_up_to_scale(inverted, expected, rtol=rtol).passed:
-        return "your matrix is the inverse of the expected one: it maps in the opposite direction (swap source and target)"
+        return ("your matrix is the inverse of the expected one: it maps in the opposite direction "
+                "(swap source and target)")
     return None
 
 
@@ -359,7 +372,7 @@ def rank_above(got: np.ndarray, expected: np.ndarray, *, rank: int, rtol: float 
 
 def entry_zero(got: np.ndarray, expected: np.ndarray, *, index: list[int]) -> str | None:
     """``got[..., i, j]`` is exactly zero everywhere although the expected entry is not."""
-    key = (Ellipsis, *index)
+    key: tuple[Any, ...] = (Ellipsis, *index)
     try:
         g, e = got[key], expected[key]
     except IndexError:
@@ -373,7 +386,7 @@ def entry_zero(got: np.ndarray, expected: np.ndarray, *, index: list[int]) -> st
 def entry_not(got: np.ndarray, expected: np.ndarray, *, index: list[int], value: float = 1.0,
               rtol: float = 1e-6) -> str | None:
     """``got[..., i, j]`` differs from ``value`` (e.g. H[2, 2] = 1 is the normalisation asked for)."""
-    key = (Ellipsis, *index)
+    key: tuple[Any, ...] = (Ellipsis, *index)
     try:
         g = np.asarray(got[key], dtype=np.float64)
     except IndexError:
@@ -397,7 +410,8 @@ def permuted(got: np.ndarray, expected: np.ndarray, *, rtol: float = 1e-3) -> st
 
 
 def same_as_reference_with(got: np.ndarray, expected: np.ndarray, *, alternative: Any = None,
-                           outcome: Outcome | None = None, params: dict[str, Any] | None = None) -> str | None:
+                           outcome: Outcome | None = None,
+                           params: dict[str, Any] | None = None) -> str | None:
     """The result equals the reference's run with other controls (the grader supplies ``outcome``)."""
     if outcome is not None and outcome.passed:
         return f"your result is what the reference computes with {params}"
@@ -413,15 +427,38 @@ def same_as_mistake(got: np.ndarray, expected: np.ndarray, *, outcome: Outcome |
     return None
 
 
-#: Detectors by the name ``hints = [{ when = ... }]`` uses.
+#: Detectors by the name a hint's ``when`` uses.
 DETECTORS: dict[str, Callable[..., str | None]] = {f.__name__: f for f in (
     transposed, inverse, negated, scaled, rank_above, entry_zero, entry_not, permuted, same_as_reference_with,
     same_as_mistake)}
 
 
+#: Detectors the grader runs an alternative for (the reference with other controls, a function of
+#: ``mistakes.py``) and compares: the keys their hints take in tasks.toml instead of options.
+ALTERNATIVES: dict[str, frozenset[str]] = {
+    "same_as_reference_with": frozenset({"params", "compare", "compare_options"}),
+    "same_as_mistake": frozenset({"mistake", "compare", "compare_options"}),
+}
+
+
+def detector_keys(when: str) -> tuple[frozenset[str], frozenset[str]]:
+    """(the keys a hint of detector ``when`` may give in tasks.toml, the ones it must give)."""
+    if when in ALTERNATIVES:
+        return ALTERNATIVES[when], frozenset({"mistake"} if when == "same_as_mistake" else ())
+    parameters = list(inspect.signature(DETECTORS[when]).parameters.values())
+    keys = [p for p in parameters if p.kind == p.KEYWORD_ONLY]
+    return frozenset(p.name for p in keys), frozenset(p.name for p in keys if p.default is p.empty)
+
+
+def plain_detectors() -> frozenset[str]:
+    """Detectors that need no options: a check may name them directly (``hints = ["transposed"]``)."""
+    return frozenset(name for name in DETECTORS if name not in ALTERNATIVES and not detector_keys(name)[1])
+
+
 def detect(when: str, got: Any, expected: Any, options: dict[str, Any]) -> str | None:
     """Run detector ``when``; a detector that cannot apply (shapes, types) finds nothing."""
     try:
-        return DETECTORS[when](np.asarray(got, dtype=np.float64), np.asarray(expected, dtype=np.float64), **options)
+        return DETECTORS[when](np.asarray(got, dtype=np.float64), np.asarray(expected, dtype=np.float64),
+                               **options)
     except (TypeError, ValueError, np.linalg.LinAlgError):
         return None
