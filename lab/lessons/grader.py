@@ -3,14 +3,15 @@
 For every check of every task (see :mod:`lab.lessons.format`), the grader:
 
 1. loads the check's data (fresh secret seeds drawn with :mod:`secrets` at every grading, unless
-   the lesson gives an instructor's seed or ``--seed`` is passed) and runs the reference pipeline
-   up to the task's step, keeping the state there;
-2. runs the task's step on that state with the student's function as the override
-   (:meth:`lab.core.Session.run`), the function running in the sandbox and receiving only the
-   step's inputs and controls, never the reference's output or the truth;
+   the lesson gives an instructor's seed or ``--seed`` is passed) and runs the reference pipeline's
+   plan for the task's step (:meth:`lab.core.Session.plan`: what the step needs, by data flow);
+2. forks that session (:meth:`~lab.core.Session.fork`) and runs the step's plan there with the
+   student's function as the override (:meth:`~lab.core.Session.run_plan`), the function running
+   in the sandbox and receiving only the step's inputs and controls, never the reference's output
+   or the truth; the reference's run of the step with the check's controls is made the same way;
 3. checks what came back (type, shape, finite) and compares it with the reference's output
-   (stage ``output``), or runs the rest of the pipeline on it and compares the resulting value or
-   metric with the reference's (stage ``pipeline``);
+   (stage ``output``), or, on a fork of each, runs the plan that brings the check's ``until`` step
+   up to date and compares the resulting value or metric with the reference's (stage ``pipeline``);
 4. writes one test per check in Gradescope's ``results.json`` schema, with a message saying which
    check, what was expected, what came back, a hint when a common mistake is recognised, and what
    the code printed.
@@ -27,16 +28,18 @@ score full marks.
 from __future__ import annotations
 
 import logging
+import os
 import secrets
 import time
 import zlib
 from dataclasses import dataclass, field
-from typing import Any, Callable
+from collections.abc import Callable, Mapping
+from typing import Any
 
 import numpy as np
 
 from lab.core.errors import LabError, StepFailed
-from lab.core.pipeline import Loaded, Pipeline, Session, open_session
+from lab.core.pipeline import Pipeline, RunRecord, Session, StepParams, open_session
 from lab.core.step import StepSpec
 from lab.lessons import checks as checks_module
 from lab.lessons import isolation
@@ -65,8 +68,8 @@ class TestResult:
     task: str = ""
 
     def to_json(self) -> dict[str, Any]:
-        return {"name": self.name, "score": round(self.score, 6), "max_score": self.max_score, "status": self.status,
-                "output": self.output, "visibility": self.visibility}
+        return {"name": self.name, "score": round(self.score, 6), "max_score": self.max_score,
+                "status": self.status, "output": self.output, "visibility": self.visibility}
 
 
 @dataclass
@@ -89,9 +92,10 @@ class GradeReport:
         return float(sum(t.max_score for t in self.tests))
 
     def results_json(self) -> dict[str, Any]:
-        """Gradescope's results.json (top-level score, execution_time, output, tests; extra_data for instructors)."""
-        return {"score": round(self.score, 6), "execution_time": round(self.execution_time, 3), "output": self.output,
-                "tests": [t.to_json() for t in self.tests],
+        """Gradescope's results.json (top-level score, execution_time, output, tests; extra_data for
+        instructors)."""
+        return {"score": round(self.score, 6), "execution_time": round(self.execution_time, 3),
+                "output": self.output, "tests": [t.to_json() for t in self.tests],
                 "extra_data": {"lesson": self.lesson, "max_score": self.max_score, "seeds": self.seeds,
                                "reference": self.reference}}
 
@@ -112,11 +116,11 @@ def reseeder(lesson: Lesson, name: str, seed: int | None) -> Callable[[int], int
     return None  # an instructor's seed is used as given
 
 
-def draw_seeds(lesson: Lesson, seed: int | None = None, *, environ: dict[str, str] | None = None) -> dict[str, int]:
-    """One seed per check dataset: from ``--seed`` (derived per dataset), the lesson, the environment or :mod:`secrets`."""
-    import os
-
-    environ = os.environ if environ is None else environ
+def draw_seeds(lesson: Lesson, seed: int | None = None, *,
+               environ: Mapping[str, str] | None = None) -> dict[str, int]:
+    """One seed per check dataset: from ``--seed`` (derived per dataset), the lesson, the environment or
+    :mod:`secrets`."""
+    variables: Mapping[str, str] = os.environ if environ is None else environ
     seeds = {}
     for name, data in lesson.datasets.items():
         if seed is not None:
@@ -125,10 +129,11 @@ def draw_seeds(lesson: Lesson, seed: int | None = None, *, environ: dict[str, st
             seeds[name] = data.seed
         elif isinstance(data.seed, str) and data.seed.startswith("env:"):
             variable = data.seed[4:]
-            text = environ.get(variable)
+            text = variables.get(variable)
             if text is None or not text.strip().lstrip("-").isdigit():
-                raise LabError(f"datasets.{name}.seed", f"the instructor's seed is read from ${variable}, which is "
-                                                        f"{'not set' if text is None else 'not an integer'}")
+                why = "not set" if text is None else "not an integer"
+                raise LabError(f"datasets.{name}.seed",
+                               f"the instructor's seed is read from ${variable}, which is {why}")
             seeds[name] = int(text)
         else:
             seeds[name] = secrets.randbits(31)
@@ -195,22 +200,40 @@ class SandboxedSubmission(Submission):
 
 # --- runs of the pipeline -----------------------------------------------------------------------------
 @dataclass
+class AfterRun:
+    """The pipeline brought up to date to a check's ``until`` after the task's step: its session and the
+    records of the task's step and of every step run after it (where a check's metric is looked up)."""
+
+    session: Session
+    records: list[RunRecord]
+
+    def metric(self, name: str) -> Any:
+        """``name`` as the last run step reporting it measured it (None when no step reports it)."""
+        for record in reversed(self.records):
+            if name in record.metrics:
+                return record.metrics[name]
+        return None
+
+
+@dataclass
 class StepRun:
     """The task's step run on one state: its outputs and the session holding them, or why it failed."""
 
     step: str = ""
     session: Session | None = None
+    params: StepParams = field(default_factory=dict)
+    record: RunRecord | None = None
     outputs: dict[str, Any] = field(default_factory=dict)
     error: str = ""
     failure: SubmissionFailure | None = None
     printed: str = ""
     violations: tuple[str, ...] = ()
     flooded: int = 0
-    downstream: dict[str, Session | str] = field(default_factory=dict)  # until -> session, or the error
+    downstream: dict[str, AfterRun | str] = field(default_factory=dict)  # until -> the run, or the error
 
 
 class DataRun:
-    """One check dataset: its reference run up to each task step (state snapshots), made on first use.
+    """One check dataset: a session holding the reference pipeline's run, which every run of a task forks.
 
     A generator may fail for some seeds (a board that cannot be placed in the image): with a
     fresh or ``--seed`` seed, up to :attr:`ATTEMPTS` seeds are tried (``reseed(attempt)``).
@@ -224,38 +247,39 @@ class DataRun:
         self.data = data
         self.seed = seed
         self.reseed = reseed
-        self.snapshots: dict[str, dict[str, Any]] = {}
-        self.truth: dict[str, Any] = {}
         self.error = ""
         self._session: Session | None = None
+        self._ready: set[str] = set()
 
     def params(self, step: str) -> dict[str, Any]:
         return dict(self.data.params.get(step, {}))
 
-    def snapshot(self, step: str) -> dict[str, Any]:
-        """The state just before ``step`` runs (the reference pipeline run that far)."""
-        if step in self.snapshots:
-            return self.snapshots[step]
+    def controls(self, step: str | None = None, params: Mapping[str, Any] | None = None) -> StepParams:
+        """The controls of every step as the dataset gives them, with ``params`` for ``step``."""
+        controls = {name: dict(values) for name, values in self.data.params.items()}
+        if step is not None:
+            controls[step] = dict(params if params is not None else self.params(step))
+        return controls
+
+    def reference(self, step: str) -> Session:
+        """The session after the reference pipeline ran ``step``'s plan (what it needs, and the step) with
+        the dataset's controls; every run of the step forks it."""
         if self.error:
             raise LabError("dataset", self.error)
         if self._session is None:
             self._session = self._open()
-            self.truth = self._session.truth
         session = self._session
-        for spec in self.pipeline.steps:
-            if spec.name not in self.snapshots:
-                self.snapshots[spec.name] = dict(session.state)
-            if spec.name == step:
-                break
-            if all(w in session.state for w in spec.writes):
-                continue
+        if step not in self._ready:
+            plan = session.plan(step, self.controls())
+            ran: list[RunRecord] = []
             try:
-                session.run(spec.name, self.params(spec.name))
+                session.run_plan(plan, self.controls(), on_step=ran.append)
             except LabError as exc:
-                self.error = (f"the reference pipeline failed on the check data at step {spec.name!r} ({exc}); "
-                              "this is a problem of the lesson, not yours")
+                self.error = (f"the reference pipeline failed on the check data at step "
+                              f"{plan.steps[len(ran)]!r} ({exc}); this is a problem of the lesson, not yours")
                 raise LabError("dataset", self.error) from None
-        return self.snapshots[step]
+            self._ready.add(step)
+        return session
 
     def _open(self) -> Session:
         spec = self.pipeline.dataset(self.data.dataset)
@@ -269,14 +293,9 @@ class DataRun:
                 return open_session(self.pipeline, self.data.dataset, options, seed=self.seed)
             except LabError as exc:
                 problem = exc
-        self.error = f"the check data could not be made ({problem}); this is a problem of the lesson, not yours"
+        self.error = (f"the check data could not be made ({problem}); this is a problem of the lesson, "
+                      "not yours")
         raise LabError("dataset", self.error)
-
-    def session_at(self, step: str) -> Session:
-        """A fresh session holding the state just before ``step`` (and the truth, for evaluations)."""
-        state = self.snapshot(step)
-        return Session(self.pipeline, Loaded(dict(state), self.truth), dataset=self.data.dataset,
-                       options=self.data.options, seed=self.seed)
 
 
 # --- the grader -----------------------------------------------------------------------------------------
@@ -321,21 +340,23 @@ class Grader:
 
     def _summary(self, tests: list[TestResult], elapsed: float) -> str:
         score, top = sum(t.score for t in tests), sum(t.max_score for t in tests)
-        lines = [f"{self.lesson.title}: {score:g} / {top:g} points ({sum(t.status == 'passed' for t in tests)} of "
-                 f"{len(tests)} checks passed) in {elapsed:.1f} s."]
+        passed = sum(t.status == "passed" for t in tests)
+        lines = [f"{self.lesson.title}: {score:g} / {top:g} points ({passed} of {len(tests)} checks passed) "
+                 f"in {elapsed:.1f} s."]
         if self.reference:
             lines.append("Graded the lab's own reference implementation.")
         if self.load_failure is not None:
             lines.append(_failure_text(self.load_failure, "your file", self.limits))
         printed = self.submission.printed_outside_calls()
         if printed:
-            lines += ["What your file printed when loaded (or outside Python's print):", _truncate(printed, 2000)]
+            lines += ["What your file printed when loaded (or outside Python's print):",
+                      _truncate(printed, 2000)]
         return "\n".join(lines)
 
     # --- one check ------------------------------------------------------------------------------------
     def _grade_check(self, task: Task, check: Check, problem: str | None) -> TestResult:
-        test = TestResult(name=f"{task.title}: {check.name}", score=0.0, max_score=check.points, status="failed",
-                          output="", visibility=check.visibility, task=task.name)
+        test = TestResult(name=f"{task.title}: {check.name}", score=0.0, max_score=check.points,
+                          status="failed", output="", visibility=check.visibility, task=task.name)
         header = f"Check: {check.name}\nData: {self.lesson.datasets[check.dataset].describe()}"
         if check.params:
             header += f"\nControls of {task.step}: {_format_params(check.params)}"
@@ -345,8 +366,9 @@ class Grader:
             body, passed = f"Not graded: {exc.reason}", False
         except Exception as exc:  # a bug in the lab: the other checks still run, the student is told
             log.exception("grading check %r of %s failed", check.name, self.lesson.id)
-            body, passed = (f"Not graded: the grader itself failed on this check ({type(exc).__name__}: {exc}); "
-                            "this is a bug in the lab, not in your code: tell your instructor"), False
+            body = (f"Not graded: the grader itself failed on this check ({type(exc).__name__}: {exc}); "
+                    "this is a bug in the lab, not in your code: tell your instructor")
+            passed = False
         if passed:
             test.score, test.status = check.points, "passed"
         test.output = _truncate(f"{header}\n{body}", MAX_TEST_OUTPUT)
@@ -362,68 +384,83 @@ class Grader:
         if time.monotonic() >= self.deadline:
             return (f"Not run: grading stopped after its time limit of {self.limits.total_timeout_s:g} s "
                     "(earlier calls of your code took that long)"), False
-        spec = self.pipeline.step(task.step)
         params = {**self.data[check.dataset].params(task.step), **check.params}
         reference = self._step_run(task, check.dataset, params, student=False)
         if reference.error:
-            raise LabError("reference", f"the reference {task.step} failed on the check data ({reference.error}); "
-                                        "this is a problem of the lesson")
+            raise LabError("reference", f"the reference {task.step} failed on the check data "
+                                        f"({reference.error}); this is a problem of the lesson")
         student = self._step_run(task, check.dataset, params, student=True)
-        printed = f"\nWhat your code printed:\n{_truncate(student.printed, 2000)}" if student.printed.strip() else ""
+        printed = (f"\nWhat your code printed:\n{_truncate(student.printed, 2000)}" if student.printed.strip()
+                   else "")
         if student.failure is not None or student.error:
-            text = _failure_text(student.failure, f"{task.step}()", self.limits) if student.failure else student.error
+            text = (_failure_text(student.failure, f"{task.step}()", self.limits) if student.failure
+                    else student.error)
             return text + printed, False
         if student.flooded:
-            return (f"{task.step}() printed {student.flooded} characters more than the {self.limits.output_kb:g} KB "
-                    f"a call may print: remove your debugging prints.{printed}"), False
-        if check.stage == "output":
-            value_name = check.value or spec.writes[0]
-            got, expected = self._values(student, reference, value_name, "your")
-            if isinstance(got, str):
-                return got + printed, False
-            problem = checks_module.structure_problem(got, expected, what=f"{task.step}'s {value_name}")
-            if problem:
-                return f"Your function returned a value of the wrong form: {problem}.{printed}", False
-            outcome = self._compare(check, got, expected)
-            hints = self._hints(task, check, student, reference, params, got, expected) if not outcome.passed else []
-            return _outcome_text(outcome, f"{value_name}", hints) + printed, outcome.passed
-        # stage "pipeline": the rest of the pipeline on the student's output
-        first = spec.writes[0]
+            return (f"{task.step}() printed {student.flooded} characters more than the "
+                    f"{self.limits.output_kb:g} KB a call may print: remove your debugging "
+                    f"prints.{printed}"), False
+        check_stage = self._output_body if check.stage == "output" else self._pipeline_body
+        body, passed = check_stage(task, check, student, reference, params)
+        return body + printed, passed
+
+    def _output_body(self, task: Task, check: Check, student: StepRun, reference: StepRun,
+                     params: dict[str, Any]) -> tuple[str, bool]:
+        """Stage ``output``: the step's value against the reference's on the same inputs."""
+        value_name = check.value or self.pipeline.step(task.step).writes[0]
+        got, expected = self._values(student, reference, value_name, "your")
+        if isinstance(got, str):
+            return got, False
+        problem = checks_module.structure_problem(got, expected, what=f"{task.step}'s {value_name}")
+        if problem:
+            return f"Your function returned a value of the wrong form: {problem}.", False
+        outcome = self._compare(check, got, expected)
+        hints = [] if outcome.passed else self._hints(task, check, student, reference, params, got, expected)
+        return _outcome_text(outcome, f"{value_name}", hints), outcome.passed
+
+    def _pipeline_body(self, task: Task, check: Check, student: StepRun, reference: StepRun,
+                       params: dict[str, Any]) -> tuple[str, bool]:
+        """Stage ``pipeline``: what ``until`` needs run on the student's output; a metric or value
+        compared."""
+        first = self.pipeline.step(task.step).writes[0]
         got_out, expected_out = student.outputs.get(first), reference.outputs.get(first)
         problem = checks_module.structure_problem(got_out, expected_out, what=f"{task.step}'s {first}")
         if problem:
-            return (f"The rest of the pipeline was not run: your function returned a value of the wrong form: "
-                    f"{problem}.{printed}"), False
+            return ("The rest of the pipeline was not run: your function returned a value of the wrong "
+                    f"form: {problem}."), False
         until = check.until or self.pipeline.steps[-1].name
-        student_after = self._downstream(student, check.dataset, until)
+        student_after = self._downstream(student, until)
         if isinstance(student_after, str):
             hints = self._hints(task, check, student, reference, params, got_out, expected_out)
             return (f"The rest of the pipeline failed on your output: {student_after}"
-                    + "".join(f"\nHint: {h}" for h in hints) + printed), False
-        reference_after = self._downstream(reference, check.dataset, until)
+                    + "".join(f"\nHint: {h}" for h in hints)), False
+        reference_after = self._downstream(reference, until)
         if isinstance(reference_after, str):
             raise LabError("reference", f"the reference pipeline failed after {task.step}: {reference_after}")
         if check.metric is not None:
-            got, expected = _metric(student_after, check.metric), _metric(reference_after, check.metric)
+            got, expected = student_after.metric(check.metric), reference_after.metric(check.metric)
             if got is None or expected is None:
                 raise LabError("metric", f"no step up to {until!r} reports metric {check.metric!r}")
             what = f"metric {check.metric} after running the pipeline to {until} on your {first}"
         else:
-            got, expected = self._values(_as_run(student_after), _as_run(reference_after), check.value or "", "the")
+            got, expected = self._values(_as_run(student_after.session), _as_run(reference_after.session),
+                                         check.value or "", "the")
             if isinstance(got, str):
-                return got + printed, False
+                return got, False
             problem = checks_module.structure_problem(got, expected, what=check.value or "")
             if problem:
-                return f"After the pipeline ran on your output: {problem}.{printed}", False
+                return f"After the pipeline ran on your output: {problem}.", False
             what = f"{check.value} after running the pipeline to {until} on your {first}"
         outcome = self._compare(check, got, expected)
-        hints = self._hints(task, check, student, reference, params, got_out, expected_out) if not outcome.passed else []
-        return _outcome_text(outcome, what, hints) + printed, outcome.passed
+        hints = ([] if outcome.passed
+                 else self._hints(task, check, student, reference, params, got_out, expected_out))
+        return _outcome_text(outcome, what, hints), outcome.passed
 
     def _compare(self, check: Check, got: Any, expected: Any) -> checks_module.Outcome:
         compare = checks_module.COMPARISONS[check.compare]
         try:
-            return compare(checks_module.as_compared(got), checks_module.as_compared(expected), **check.options)
+            return compare(checks_module.as_compared(got), checks_module.as_compared(expected),
+                           **check.options)
         except (TypeError, ValueError) as exc:
             return checks_module.Outcome(False, f"could not be compared with the expected value ({exc})")
 
@@ -447,17 +484,21 @@ class Grader:
     def _step_run(self, task: Task, dataset: str, params: dict[str, Any], *, student: bool,
                   mistake: str | None = None) -> StepRun:
         """Run the task's step on ``dataset``: the student's code, the reference, or (``mistake``) a function
-        of the lesson's ``mistakes.py``."""
+        of the lesson's ``mistakes.py``, on a fork of the dataset's reference run."""
         key = (task.step, dataset, _freeze(params), mistake)
         cache = self.student_runs if student else self.reference_runs
         if key in cache:
             return cache[key]
-        session = self.data[dataset].session_at(task.step)
+        data = self.data[dataset]
+        session = data.reference(task.step).fork()
         spec = self.pipeline.step(task.step)
-        run = StepRun(step=task.step, session=session)
+        run = StepRun(step=task.step, session=session, params=data.controls(task.step, params))
         proxy = _Proxy(self, task, spec) if student else None
+        override = proxy or (self.lesson.mistakes[mistake] if mistake else None)
         try:
-            session.run(task.step, params, override=proxy or (self.lesson.mistakes[mistake] if mistake else None))
+            records = session.run_plan(session.plan(task.step, run.params), run.params,
+                                       overrides={task.step: override} if override else None)
+            run.record = records[-1]
             run.outputs = {name: session.state[name] for name in spec.writes if name in session.state}
         except StepFailed as exc:
             cause = exc.__cause__
@@ -476,23 +517,21 @@ class Grader:
         cache[key] = run
         return run
 
-    def _downstream(self, run: StepRun, dataset: str, until: str) -> Session | str:
-        """A session with the pipeline run from after the task step to ``until`` on ``run``'s output."""
+    def _downstream(self, run: StepRun, until: str) -> AfterRun | str:
+        """A fork of ``run``'s session brought up to date to ``until`` (the plan of what ``until`` needs,
+        which re-runs what reads the step's output), or why a step of that plan failed."""
         if until in run.downstream:
             return run.downstream[until]
-        assert run.session is not None
-        session = Session(self.pipeline, Loaded(dict(run.session.state), run.session.truth),
-                          dataset=run.session.dataset, options=run.session.options, seed=run.session.seed)
-        session.metrics = dict(run.session.metrics)
-        names = [s.name for s in self.pipeline.steps]
-        start = names.index(run.step) + 1
-        result: Session | str = session
-        for spec in self.pipeline.steps[start:names.index(until) + 1]:
-            try:
-                session.run(spec.name, self.data[dataset].params(spec.name))
-            except LabError as exc:
-                result = f"step {spec.name}: {exc.reason}"
-                break
+        assert run.session is not None and run.record is not None
+        session = run.session.fork()
+        plan = session.plan(until, run.params)
+        records = [run.record]
+        result: AfterRun | str
+        try:
+            session.run_plan(plan, run.params, on_step=records.append)
+            result = AfterRun(session, records)
+        except LabError as exc:
+            result = f"step {plan.steps[len(records) - 1]}: {exc.reason}"
         run.downstream[until] = result
         return result
 
@@ -530,8 +569,9 @@ class Grader:
                                       **compare_options)
                 except (TypeError, ValueError):
                     continue
-                options = {"outcome": outcome, **({"mistake": options["mistake"]} if rule.when == "same_as_mistake"
-                                                  else {"params": options.get("params", {})})}
+                which = ({"mistake": options["mistake"]} if rule.when == "same_as_mistake"
+                         else {"params": options.get("params", {})})
+                options = {"outcome": outcome, **which}
             message = checks_module.detect(rule.when, got_array, expected_array, options)
             if message:
                 found.append(rule.say or message)
@@ -551,14 +591,17 @@ class Grader:
         if got.get("varargs"):
             return None
         if len(got["positional"]) != len(expected.positional) or set(got["keyword"]) != set(expected.keyword):
-            shown = "(" + ", ".join(list(got["positional"]) + (["*"] + list(got["keyword"]) if got["keyword"] else [])) + ")"
+            keyword = ["*", *got["keyword"]] if got["keyword"] else []
+            shown = "(" + ", ".join([*got["positional"], *keyword]) + ")"
             return (f"Your {task.step}{shown} does not match the signature the pipeline calls: "
-                    f"def {task.signature} (keep the parameters of starter.py, including the keyword-only ones)")
+                    f"def {task.signature} (keep the parameters of starter.py, including the keyword-only "
+                    f"ones)")
         return None
 
 
 class _Proxy:
-    """The override handed to :meth:`Session.run`: proxies the call to the sandboxed (or reference) function."""
+    """The override handed to :meth:`Session.run_plan`: proxies the call to the sandboxed (or reference)
+    function."""
 
     def __init__(self, grader: Grader, task: Task, spec: StepSpec) -> None:
         self.grader, self.task, self.spec = grader, task, spec
@@ -604,8 +647,8 @@ def _failure_text(failure: SubmissionFailure | None, what: str, limits: Limits) 
                 f"Submissions may use numpy, scipy and cv2 and the files in their own directory only.")
     if failure.kind == "memory":
         detail = f": {failure.message}" if failure.message else ""
-        return (f"{what} ran out of memory{detail}. A submission may allocate {limits.memory_mb:g} MB; keep arrays "
-                f"the size of the inputs.\n{failure.traceback}")
+        return (f"{what} ran out of memory{detail}. A submission may allocate {limits.memory_mb:g} MB; keep "
+                f"arrays the size of the inputs.\n{failure.traceback}")
     if failure.kind == "load" and failure.traceback:
         return f"{failure.message}\n{failure.traceback}"
     return failure.message
@@ -642,7 +685,9 @@ def _format_params(params: dict[str, Any]) -> str:
 
 
 def _truncate(text: str, limit: int) -> str:
-    return text if len(text) <= limit else text[:limit] + f"\n... ({len(text) - limit} more characters not shown)"
+    if len(text) <= limit:
+        return text
+    return text[:limit] + f"\n... ({len(text) - limit} more characters not shown)"
 
 
 def _freeze(value: Any) -> Any:
@@ -651,13 +696,6 @@ def _freeze(value: Any) -> Any:
     if isinstance(value, (list, tuple)):
         return tuple(_freeze(v) for v in value)
     return value
-
-
-def _metric(session: Session, name: str) -> Any:
-    for step in reversed(list(session.metrics)):
-        if name in session.metrics[step]:
-            return session.metrics[step][name]
-    return None
 
 
 def _as_run(session: Session) -> StepRun:
@@ -671,12 +709,21 @@ def grade(lesson: Lesson, source: str | None = None, *, reference: bool = False,
     if not reference and source is None:
         raise LabError("submission", "give the submission's source, or grade the reference")
     if not reference:
-        isolation.check(isolation.default_isolation())  # SandboxUnavailable (HTTP 503, CLI exit 2), never a 0 score
+        isolation.check(isolation.default_isolation())  # SandboxUnavailable (HTTP 503, CLI exit 2), not a 0
     limits = limits or lesson.limits
     seeds = draw_seeds(lesson, seed)
     submission: Submission = ReferenceSubmission() if reference else SandboxedSubmission(source or "", limits)
     return Grader(lesson, submission, seeds=seeds, limits=limits, reference=reference, seed=seed).run()
 
 
-__all__ = ["grade", "draw_seeds", "GradeReport", "TestResult", "Grader", "DataRun", "ReferenceSubmission",
-           "SandboxedSubmission", "Submission"]
+__all__ = [
+    "DataRun",
+    "GradeReport",
+    "Grader",
+    "ReferenceSubmission",
+    "SandboxedSubmission",
+    "Submission",
+    "TestResult",
+    "draw_seeds",
+    "grade",
+]

@@ -15,24 +15,26 @@ to the sandboxed child (inputs pickled through a pipe, never the reference's out
 truth); a failure there (an exception, a timeout, something the sandbox refuses) is raised as
 :class:`StudentCodeFailed`, a :class:`~lab.core.errors.StepFailed` whose reason is the message a
 student needs, so :meth:`Session.run` records it and leaves the state as it was.
-:meth:`StudentCode.compare` runs both on copies of the session's state and never touches it.
+:meth:`StudentCode.compare` runs both on forks of the session (:meth:`Session.fork`) and never touches it.
 """
 
 from __future__ import annotations
 
 import threading
 from dataclasses import dataclass, field
-from typing import Any, Callable
+from collections.abc import Callable
+from typing import Any
 
 from lab.core.errors import LabError, StepFailed, UnknownName
-from lab.core.pipeline import Loaded, Session
+from lab.core.pipeline import Session
 from lab.lessons import checks as checks_module
 from lab.lessons.format import Lesson, Limits, parameters_of_spec
 from lab.lessons.sandbox import Sandbox, SubmissionFailure
 
 
 class StudentCodeFailed(StepFailed):
-    """The student's function failed (raised, timed out, was refused by the sandbox) or could not be loaded."""
+    """The student's function failed (raised, timed out, was refused by the sandbox) or could not be
+    loaded."""
 
 
 @dataclass
@@ -110,22 +112,14 @@ class StudentCode:
         return student_step
 
     def compare(self, session: Session, step: str, params: dict[str, Any] | None = None) -> SideBySide:
-        """Run ``step`` by the reference and by the student on copies of ``session``'s state (left untouched)."""
+        """Run ``step`` by the reference and by the student on forks of ``session`` (left untouched), each on
+        the inputs the session holds now."""
         spec = session.pipeline.step(step)
-        with session.lock:
-            state, truth = dict(session.state), dict(session.truth)
-        for name in spec.writes:  # the inputs as they were before the step
-            state.pop(name, None)
-
-        def copy() -> Session:
-            return Session(session.pipeline, Loaded(dict(state), truth), dataset=session.dataset,
-                           options=session.options, seed=session.seed)
-
-        reference_session = copy()
+        with session.lock:  # wait for a step running there, then fork one state twice
+            reference_session, student_session = session.fork(), session.fork()
         reference_session.run(step, params)
         reference = {name: reference_session.state[name] for name in spec.writes}
         side = SideBySide(step=step, reference=reference)
-        student_session = copy()
         try:
             student_session.run(step, params, override=self.override(step))
         except LabError as exc:
@@ -138,9 +132,11 @@ class StudentCode:
         if problem:
             side.passed, side.message = False, problem
             return side
-        check = next((c for t in self.lesson.tasks if t.step == step for c in t.checks if c.stage == "output"), None)
+        check = next((c for t in self.lesson.tasks if t.step == step
+                      for c in t.checks if c.stage == "output"), None)
         compare = checks_module.COMPARISONS[check.compare] if check else checks_module.allclose
-        outcome = compare(checks_module.as_compared(side.student[first]), checks_module.as_compared(reference[first]),
+        outcome = compare(checks_module.as_compared(side.student[first]),
+                          checks_module.as_compared(reference[first]),
                           **(check.options if check else {}))
         side.passed, side.message = outcome.passed, outcome.message()
         return side
@@ -157,4 +153,4 @@ def _failure_message(failure: SubmissionFailure) -> str:
     return text
 
 
-__all__ = ["StudentCode", "StudentCodeFailed", "SideBySide"]
+__all__ = ["SideBySide", "StudentCode", "StudentCodeFailed"]

@@ -44,7 +44,8 @@ class LessonRun:
 
 
 def run_lesson(lesson: Lesson, *, dataset: str | None = None, seed: int = 0) -> LessonRun:
-    """Run the lesson's reference pipeline on a check dataset (by its name in tasks.toml) or a module dataset."""
+    """Run the lesson's reference pipeline (every step, in the planner's order) on a check dataset (by
+    its name in tasks.toml) or a module dataset; stops at the first step that fails."""
     pipeline = lesson.pipeline
     if dataset is None or dataset in lesson.datasets:
         data = lesson.datasets[dataset] if dataset else next(iter(lesson.datasets.values()))
@@ -53,19 +54,19 @@ def run_lesson(lesson: Lesson, *, dataset: str | None = None, seed: int = 0) -> 
         try:
             name, options, params = pipeline.dataset(dataset).name, {}, {}
         except UnknownName:
-            raise UnknownName("--dataset", f"no dataset {dataset!r}: the lesson's are {sorted(lesson.datasets)}, "
+            raise UnknownName("--dataset", f"no dataset {dataset!r}: the lesson's are "
+                                           f"{sorted(lesson.datasets)}, "
                                            f"the module's {[d.name for d in pipeline.datasets]}") from None
     spec = pipeline.dataset(name)
     if any(o.name == "seed" for o in spec.options):
         options["seed"] = int(seed)
     session = open_session(pipeline, name, options, seed=int(seed))
     run = LessonRun(session=session, dataset=name, options=options, seed=int(seed))
-    for step in pipeline.steps:
-        try:
-            run.records.append(session.run(step.name, params.get(step.name)))
-        except LabError as exc:
-            run.error = f"step {step.name} failed: {exc.reason}"
-            break
+    plan = session.plan(None, params)  # every step: "Run all" on a fresh session
+    try:
+        session.run_plan(plan, params, on_step=run.records.append)
+    except LabError as exc:
+        run.error = f"step {plan.steps[len(run.records)]} failed: {exc.reason}"
     return run
 
 
@@ -146,10 +147,12 @@ def _page(lesson: Lesson, run: LessonRun, pictures: list[tuple[str, str]], scene
         params = ", ".join(f"{k}={v!r}" for k, v in record.params.items())
         rows.append(f"<tr><td>{e(record.step)}</td><td>{e(params)}</td><td>{record.seconds:.3f}</td>"
                     f"<td>{metrics}</td></tr>")
-    figures = "\n".join(f'<figure><img src="{e(src)}" alt="{e(caption)}"><figcaption>{e(caption)}</figcaption>'
+    figures = "\n".join(f'<figure><img src="{e(src)}" alt="{e(caption)}">'
+                        f'<figcaption>{e(caption)}</figcaption>'
                         f"</figure>" for caption, src in pictures)
     scene = (f'<p class="error">{e(scene_note)}</p>' if scene_note else
-             '<iframe src="scene.html" title="3D scene"></iframe><p><a href="scene.html">Open the 3D scene</a></p>')
+             '<iframe src="scene.html" title="3D scene"></iframe>'
+             '<p><a href="scene.html">Open the 3D scene</a></p>')
     error = f'<p class="error">{e(run.error)}</p>' if run.error else ""
     options = ", ".join(f"{k}={v!r}" for k, v in run.options.items())
     return f"""<!doctype html>
@@ -181,4 +184,4 @@ figure img {{ max-width: 320px; }} iframe {{ width: 100%; height: 600px; border:
 """
 
 
-__all__ = ["run_lesson", "write_report", "LessonRun"]
+__all__ = ["LessonRun", "run_lesson", "write_report"]

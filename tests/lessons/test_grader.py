@@ -180,13 +180,22 @@ def test_a_dataset_that_fails_for_a_seed_is_retried_with_another(toy_lesson):
     spec = pipeline.dataset("gradients")
     flaky_pipeline = dataclasses.replace(pipeline, datasets=(dataclasses.replace(spec, loader=flaky),))
     run = DataRun(flaky_pipeline, toy_lesson.datasets["small"], 5, reseed=lambda attempt: 100 + attempt)
-    assert "images" in run.snapshot("mean_intensity")
+    assert "images" in run.reference("mean_intensity").state
     assert calls == [5, 101, 102] and run.seed == 102
     fixed = DataRun(flaky_pipeline, toy_lesson.datasets["secret"], 1234, reseed=None)
     calls.clear()
     with pytest.raises(LabError, match="could not be made"):
-        fixed.snapshot("mean_intensity")
+        fixed.reference("mean_intensity")
     assert calls == [1234]
+
+
+def test_a_check_dataset_runs_what_the_planner_plans_for_each_task_once(toy_lesson):
+    run = DataRun(toy_lesson.pipeline, toy_lesson.datasets["small"], 5)
+    session = run.reference("make_noisy")
+    assert [r.step for r in session.history] == ["make_noisy"]
+    assert run.reference("mean_intensity") is session and run.reference("make_noisy") is session
+    assert [r.step for r in session.history] == ["make_noisy", "mean_intensity"]  # nothing twice, nothing more
+    assert session.ran_with["make_noisy"] == {"sigma": 0.05}  # the dataset's controls
 
 
 def test_results_json_is_plain_json(toy_lesson):

@@ -30,7 +30,7 @@ def test_the_students_step_runs_in_place_of_the_reference(toy_lesson, session):
 
 
 def test_compare_shows_both_outputs_and_leaves_the_session_alone(toy_lesson, session):
-    before = dict(session.state)
+    before, history = dict(session.state), list(session.history)
     with StudentCode(toy_lesson, submission("toy", "wrong_ignores_scale.py")) as code:
         side = code.compare(session, "mean_intensity", {"scale": 3})
         assert side.passed is False and "largest difference" in side.message
@@ -38,6 +38,7 @@ def test_compare_shows_both_outputs_and_leaves_the_session_alone(toy_lesson, ses
         right = code.compare(session, "mean_intensity", {"scale": 1})
         assert right.passed is True
     assert session.state.keys() == before.keys() and all(session.state[k] is before[k] for k in before)
+    assert session.history == history and "means" not in session.metrics
 
 
 def test_failures_are_step_failures_with_the_students_message(toy_lesson, session):
