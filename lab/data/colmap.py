@@ -5,7 +5,7 @@ Format (https://colmap.github.io/format.html#text-format):
 * ``cameras.txt``: ``CAMERA_ID MODEL WIDTH HEIGHT PARAMS[]``; written as ``PINHOLE`` (``fx fy cx
   cy``), one camera per distinct ``(K, size)``. Read: ``SIMPLE_PINHOLE``, ``PINHOLE``, and the
   distortion models ``SIMPLE_RADIAL``, ``RADIAL``, ``OPENCV`` when their distortion is zero (a
-  :class:`~lab.data.reconstruction.Reconstruction` carries no distortion: undistort first).
+  :class:`~lab.data.reconstruction.SparseModel` carries no distortion: undistort first).
 * ``images.txt``: two lines per image, ``IMAGE_ID QW QX QY QZ TX TY TZ CAMERA_ID NAME`` (the
   world-to-camera rotation as a unit quaternion, scalar first, and ``t``: COLMAP's
   ``cam_from_world`` is the lab's ``X_c = R X_w + t``) and ``POINTS2D[]`` as ``X Y POINT3D_ID``
@@ -35,7 +35,7 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 from lab.core.errors import InvalidValue
-from lab.data.reconstruction import Reconstruction
+from lab.data.reconstruction import SparseModel
 
 _HALF = decimal.Decimal("0.5")
 _CONTEXT = decimal.Context(prec=1200)  # exact for any double plus one half
@@ -70,29 +70,31 @@ def _check_name(name: str) -> None:
                                     f"whitespace")
 
 
-def write_colmap_text(folder: str | Path, rec: Reconstruction) -> Path:
-    """Write ``rec`` as a COLMAP text model into ``folder`` (created): cameras.txt, images.txt, points3D.txt.
+def write_colmap_text(folder: str | Path, model: SparseModel) -> Path:
+    """Write the registered views of ``model`` as a COLMAP text model into ``folder`` (created): cameras.txt,
+    images.txt, points3D.txt.
 
-    Image ``i`` gets ``IMAGE_ID = i + 1``, point ``j`` ``POINT3D_ID = j + 1``; cameras are shared
-    by images with the same ``K`` and size. Raises :class:`InvalidValue` for a ``K`` with skew
-    (PINHOLE has none), names with whitespace, or a keypoint in two tracks (COLMAP's ``POINTS2D``
-    hold one ``POINT3D_ID`` each). Returns the folder.
+    The model is written as :meth:`~lab.data.reconstruction.SparseModel.compact` gives it: image
+    ``i`` (the ``i``-th registered view) gets ``IMAGE_ID = i + 1``, point ``j`` ``POINT3D_ID = j +
+    1``; cameras are shared by images with the same ``K`` and size. Raises :class:`InvalidValue` for
+    a ``K`` with skew (PINHOLE has none) or image names with whitespace or twice the same. Returns
+    the folder.
 
     ``pycolmap.Reconstruction(folder)`` reads the result (tests check it).
     """
-    if not isinstance(rec, Reconstruction):
-        raise InvalidValue("rec", f"expected a Reconstruction, got {type(rec).__name__}")
+    if not isinstance(model, SparseModel):
+        raise InvalidValue("model", f"expected a SparseModel, got {type(model).__name__}")
+    rec = model.compact()
     if np.any(rec.K[:, 0, 1] != 0.0):
         raise InvalidValue("K", "COLMAP's PINHOLE camera has no skew, but K[0, 1] != 0 for some image")
     for name in rec.names:
         _check_name(name)
-    point_of = [np.full(len(k), -1, dtype=np.int64) for k in rec.keypoints]
-    for j, track in enumerate(rec.tracks):
+    if len(set(rec.names)) != len(rec.names):
+        raise InvalidValue("names", "COLMAP's images.txt names each image once: image names must be unique")
+    keypoints, tracks = rec.image_keypoints, rec.tracks
+    point_of = [np.full(len(k), -1, dtype=np.int64) for k in keypoints]
+    for j, track in enumerate(tracks):
         for image, keypoint in track:
-            if point_of[image][keypoint] != -1:
-                raise InvalidValue("tracks", f"keypoint {keypoint} of image {image} ({rec.names[image]}) is in tracks "
-                                             f"{point_of[image][keypoint] - 1} and {j}: COLMAP allows one 3D point "
-                                             f"per keypoint")
             point_of[image][keypoint] = j + 1
 
     target = Path(folder)
@@ -126,16 +128,17 @@ def write_colmap_text(folder: str | Path, rec: Reconstruction) -> Path:
         lines.append(" ".join([str(i + 1), _repr(qw), _repr(qx), _repr(qy), _repr(qz),
                                *(_repr(v) for v in rec.t[i]), str(image_camera[i]), rec.names[i]]))
         lines.append(" ".join(f"{_to_colmap_pixel(u)} {_to_colmap_pixel(v)} {p}"
-                              for (u, v), p in zip(rec.keypoints[i], point_of[i])))
+                              for (u, v), p in zip(keypoints[i], point_of[i])))
     (target / "images.txt").write_text("\n".join(lines) + "\n")
 
     lines = ["# 3D point list with one line of data per point:",
              "#   POINT3D_ID, X, Y, Z, R, G, B, ERROR, TRACK[] as (IMAGE_ID, POINT2D_IDX)",
-             f"# Number of points: {len(rec.xyz)}, mean track length: {rec.mean_track_length}"]
-    for j in range(len(rec.xyz)):
-        track = " ".join(f"{image + 1} {keypoint}" for image, keypoint in rec.tracks[j])
-        lines.append(" ".join([str(j + 1), *(_repr(v) for v in rec.xyz[j]), *(str(int(c)) for c in rec.colors[j]),
-                               _repr(rec.errors[j])]) + (" " + track if track else ""))
+             f"# Number of points: {len(rec.points)}, mean track length: {rec.mean_track_length}"]
+    for j in range(len(rec.points)):
+        track = " ".join(f"{image + 1} {keypoint}" for image, keypoint in tracks[j])
+        lines.append(" ".join([str(j + 1), *(_repr(v) for v in rec.points[j]),
+                               *(str(int(c)) for c in rec.colors[j]), _repr(rec.errors[j])])
+                     + (" " + track if track else ""))
     (target / "points3D.txt").write_text("\n".join(lines) + "\n")
     return target
 
@@ -186,7 +189,7 @@ def _read_cameras(path: Path) -> dict[int, tuple[np.ndarray, tuple[int, int]]]:
             raise source.error(number, f"camera {camera_id} needs a positive size and focal length")
         if any(distortion):
             raise source.error(number, f"camera {camera_id} ({model}) has lens distortion {distortion}, which a "
-                                       f"Reconstruction does not carry: undistort the images first "
+                                       f"SparseModel does not carry: undistort the images first "
                                        f"(colmap image_undistorter)")
         if camera_id in cameras:
             raise source.error(number, f"camera id {camera_id} appears twice")
@@ -195,10 +198,11 @@ def _read_cameras(path: Path) -> dict[int, tuple[np.ndarray, tuple[int, int]]]:
     return cameras
 
 
-def read_colmap_text(folder: str | Path) -> Reconstruction:
+def read_colmap_text(folder: str | Path) -> SparseModel:
     """Read a COLMAP text model (cameras.txt, images.txt, points3D.txt) from ``folder``.
 
-    Images are ordered by ``IMAGE_ID``, points by ``POINT3D_ID``; tracks refer to those orders.
+    Images are ordered by ``IMAGE_ID`` (all registered), points by ``POINT3D_ID`` (each its own
+    track, :meth:`~lab.data.reconstruction.SparseModel.from_tracks`).
     Pixels move by -0.5 to the lab's convention (module docstring). Raises :class:`InvalidValue`
     naming the file and line of anything malformed, an unknown camera or image id, a track that
     disagrees with the images' ``POINT3D_ID``, or a camera with lens distortion.
@@ -299,14 +303,14 @@ def read_colmap_text(folder: str | Path) -> Reconstruction:
         points[point_id] = (xyz, rgb, error, converted)
     point_order = sorted(points)
 
-    return Reconstruction(
+    return SparseModel.from_tracks(
         K=np.array([cameras[images[i][2]][0] for i in order]).reshape(-1, 3, 3),
         sizes=np.array([cameras[images[i][2]][1] for i in order], dtype=np.int64).reshape(-1, 2),
         R=np.array([images[i][0] for i in order]).reshape(-1, 3, 3),
         t=np.array([images[i][1] for i in order]).reshape(-1, 3),
         names=tuple(images[i][3] for i in order),
         keypoints=tuple(images[i][4] for i in order),
-        xyz=np.array([points[p][0] for p in point_order], dtype=np.float64).reshape(-1, 3),
+        points=np.array([points[p][0] for p in point_order], dtype=np.float64).reshape(-1, 3),
         colors=np.array([points[p][1] for p in point_order], dtype=np.uint8).reshape(-1, 3),
         errors=np.array([points[p][2] for p in point_order], dtype=np.float64),
         tracks=tuple(points[p][3] for p in point_order),

@@ -23,7 +23,7 @@ from lab.core.errors import InvalidValue
 #: Formats :func:`write_value` writes, and the file suffix each usually has.
 VALUE_FORMATS: dict[str, str] = {"json": ".json", "npy": ".npy", "png": ".png", "ply": ".ply"}
 
-#: Formats :func:`write_reconstruction` writes a :class:`~lab.data.reconstruction.Reconstruction`
+#: Formats :func:`write_reconstruction` writes a :class:`~lab.data.reconstruction.SparseModel`
 #: in, and what ``path`` names for each.
 RECONSTRUCTION_FORMATS: dict[str, str] = {
     "colmap": "a folder: COLMAP text model (cameras.txt, images.txt, points3D.txt)",
@@ -48,28 +48,46 @@ def write_value(path: str | Path, value: Any, fmt: str, *, name: str, index: int
     return target
 
 
-def write_reconstruction(path: str | Path, rec: Any, fmt: str, *, image_folder: str = "images") -> Path:
+def file_names(names: tuple[str, ...], registered: np.ndarray) -> tuple[str, ...]:
+    """Image names made file names: whitespace becomes ``_``, and a name a registered view before had
+    already is prefixed with its view index (``003_name``)."""
+    out = []
+    taken: set[str] = set()
+    for v, name in enumerate(names):
+        name = "".join(c if not c.isspace() else "_" for c in name)
+        if registered[v]:
+            name = name if name not in taken else f"{v:03d}_{name}"
+            taken.add(name)
+        out.append(name)
+    return tuple(out)
+
+
+def write_reconstruction(path: str | Path, model: Any, fmt: str, *, image_folder: str = "images") -> Path:
     """Write a sparse reconstruction in ``fmt`` (a key of :data:`RECONSTRUCTION_FORMATS`).
 
-    ``colmap``: :func:`lab.data.colmap.write_colmap_text` into the folder ``path``;
-    ``transforms-json``: :func:`lab.data.transforms_json.write_transforms_json` to the file
-    ``path`` (frames at ``image_folder/<name>``). Raises :class:`InvalidValue` (field ``format``)
-    for another format or a value that is not a Reconstruction.
+    Its registered views are written (:meth:`~lab.data.reconstruction.SparseModel.compact`), their
+    names made file names (:func:`file_names`). ``colmap``: :func:`lab.data.colmap.write_colmap_text`
+    into the folder ``path``; ``transforms-json``: :func:`lab.data.transforms_json.write_transforms_json`
+    to the file ``path`` (frames at ``image_folder/<name>``). Raises :class:`InvalidValue` (field
+    ``format``) for another format or a value that is not a SparseModel.
     """
-    from lab.data.reconstruction import Reconstruction
+    from dataclasses import replace
+
+    from lab.data.reconstruction import SparseModel
 
     if fmt not in RECONSTRUCTION_FORMATS:
         raise InvalidValue("format", f"unknown format {fmt!r}; reconstruction formats are "
                                      f"{list(RECONSTRUCTION_FORMATS)}")
-    if not isinstance(rec, Reconstruction):
-        raise InvalidValue("format", f"{fmt} writes a Reconstruction, not a {type(rec).__name__}")
+    if not isinstance(model, SparseModel):
+        raise InvalidValue("format", f"{fmt} writes a SparseModel, not a {type(model).__name__}")
+    model = replace(model, names=file_names(model.names, model.registered))
     if fmt == "colmap":
         from lab.data.colmap import write_colmap_text
 
-        return write_colmap_text(path, rec)
+        return write_colmap_text(path, model)
     from lab.data.transforms_json import write_transforms_json
 
-    return write_transforms_json(path, rec, image_folder=image_folder)
+    return write_transforms_json(path, model, image_folder=image_folder)
 
 
 @dataclass(frozen=True)
@@ -178,5 +196,5 @@ def read_opencv_calibration(path: str | Path) -> OpenCVCalibration:
         storage.release()
 
 
-__all__ = ["VALUE_FORMATS", "write_value", "RECONSTRUCTION_FORMATS", "write_reconstruction", "OpenCVCalibration",
-           "write_opencv_calibration", "read_opencv_calibration"]
+__all__ = ["VALUE_FORMATS", "write_value", "RECONSTRUCTION_FORMATS", "file_names", "write_reconstruction",
+           "OpenCVCalibration", "write_opencv_calibration", "read_opencv_calibration"]

@@ -27,7 +27,7 @@ from pathlib import Path
 import numpy as np
 
 from lab.core.errors import InvalidValue
-from lab.data.reconstruction import Reconstruction
+from lab.data.reconstruction import SparseModel
 from lab.geometry.rotations import nearest_rotation
 
 #: OpenCV camera axes -> OpenGL camera axes (flip y and z), acting on the right of camera-to-world.
@@ -48,26 +48,29 @@ def camera_to_world_opengl(R: np.ndarray, t: np.ndarray) -> np.ndarray:
     return c2w @ OPENCV_TO_OPENGL
 
 
-def write_transforms_json(path: str | Path, rec: Reconstruction, *, image_folder: str = "images",
+def write_transforms_json(path: str | Path, model: SparseModel, *, image_folder: str = "images",
                           points_ply: str | None = None) -> Path:
-    """Write the cameras of ``rec`` as a nerfstudio / instant-ngp ``transforms.json`` at ``path``.
+    """Write the registered cameras of ``model`` as a nerfstudio / instant-ngp ``transforms.json`` at ``path``.
 
     Args:
         path: the file to write (parent folders are created).
-        rec: the reconstruction (its points are not in the JSON).
-        image_folder: folder of the images relative to the file; frame ``i``'s ``file_path`` is
-            ``f"{image_folder}/{rec.names[i]}"`` (just the name when ``image_folder`` is "").
-        points_ply: if given, a PLY file name (relative to the JSON) to write ``rec.xyz`` with its
+        model: the reconstruction (its points are not in the JSON); frame ``i`` is its ``i``-th
+            registered view.
+        image_folder: folder of the images relative to the file; a frame's ``file_path`` is
+            ``f"{image_folder}/{name}"`` (just the name when ``image_folder`` is "").
+        points_ply: if given, a PLY file name (relative to the JSON) to write the points with their
             colours to, referenced as ``ply_file_path`` (nerfstudio's splatting initialisation).
 
     Raises :class:`InvalidValue` for a ``K`` with skew (the format has none). Returns the path.
     """
-    if not isinstance(rec, Reconstruction):
-        raise InvalidValue("rec", f"expected a Reconstruction, got {type(rec).__name__}")
-    if np.any(rec.K[:, 0, 1] != 0.0):
+    if not isinstance(model, SparseModel):
+        raise InvalidValue("model", f"expected a SparseModel, got {type(model).__name__}")
+    views = np.flatnonzero(model.registered)
+    rec_K, rec_sizes, rec_names = model.K[views], model.sizes[views], tuple(model.names[v] for v in views)
+    if np.any(rec_K[:, 0, 1] != 0.0):
         raise InvalidValue("K", "transforms.json has no skew, but K[0, 1] != 0 for some image")
     intrinsics = [{"fl_x": float(K[0, 0]), "fl_y": float(K[1, 1]), "cx": float(K[0, 2]) + 0.5,
-                   "cy": float(K[1, 2]) + 0.5, "w": int(w), "h": int(h)} for K, (w, h) in zip(rec.K, rec.sizes)]
+                   "cy": float(K[1, 2]) + 0.5, "w": int(w), "h": int(h)} for K, (w, h) in zip(rec_K, rec_sizes)]
     shared = all(entry == intrinsics[0] for entry in intrinsics)
     data: dict = {"camera_model": "OPENCV"}
     if shared and intrinsics:
@@ -75,9 +78,9 @@ def write_transforms_json(path: str | Path, rec: Reconstruction, *, image_folder
         data["camera_angle_x"] = 2.0 * math.atan(0.5 * intrinsics[0]["w"] / intrinsics[0]["fl_x"])
         data["camera_angle_y"] = 2.0 * math.atan(0.5 * intrinsics[0]["h"] / intrinsics[0]["fl_y"])
     data.update({"k1": 0.0, "k2": 0.0, "p1": 0.0, "p2": 0.0})
-    c2w = camera_to_world_opengl(rec.R, rec.t)
+    c2w = camera_to_world_opengl(model.R[views], model.t[views])
     frames = []
-    for i, name in enumerate(rec.names):
+    for i, name in enumerate(rec_names):
         frame: dict = {"file_path": f"{image_folder.rstrip('/')}/{name}" if image_folder else name,
                        "transform_matrix": c2w[i].tolist()}
         if not shared:
@@ -88,9 +91,8 @@ def write_transforms_json(path: str | Path, rec: Reconstruction, *, image_folder
     target.parent.mkdir(parents=True, exist_ok=True)
     if points_ply:
         from lab.core.codecs import to_ply
-        from lab.core.values import PointCloud
 
-        (target.parent / points_ply).write_bytes(to_ply(PointCloud(rec.xyz, rec.colors / 255.0), name="xyz"))
+        (target.parent / points_ply).write_bytes(to_ply(model.point_cloud(), name="xyz"))
         data["ply_file_path"] = points_ply
     target.write_text(json.dumps(data, indent=2) + "\n")
     return target

@@ -1,5 +1,6 @@
 """lab.data.transforms_json: nerfstudio / instant-ngp transforms.json out and in (OpenGL camera-to-world)."""
 
+import dataclasses
 import json
 import math
 
@@ -8,12 +9,12 @@ import pytest
 import trimesh
 
 from lab.core import InvalidValue
-from lab.data.reconstruction import Reconstruction
+from lab.data.reconstruction import SparseModel
 from lab.data.transforms_json import camera_to_world_opengl, read_transforms_json, write_transforms_json
 from lab.geometry.rotations import look_at
 
 
-def _reconstruction(views: int = 5, shared: bool = True, seed: int = 0) -> Reconstruction:
+def _reconstruction(views: int = 5, shared: bool = True, seed: int = 0) -> SparseModel:
     rng = np.random.default_rng(seed)
     angles = np.linspace(0.0, 2.0, views)
     eyes = np.stack([4 * np.sin(angles), rng.uniform(-1, 1, views), -4 * np.cos(angles)], axis=1)
@@ -21,10 +22,10 @@ def _reconstruction(views: int = 5, shared: bool = True, seed: int = 0) -> Recon
     K = np.array([[[600.0 + (0 if shared else 7 * i), 0.0, 319.5], [0.0, 601.0, 239.5], [0.0, 0.0, 1.0]]
                   for i in range(views)])
     xyz = rng.uniform(-1, 1, (20, 3))
-    return Reconstruction(K=K, sizes=np.tile([640, 480], (views, 1)), R=R, t=t,
-                          names=tuple(f"frame_{i:03d}.png" for i in range(views)),
-                          keypoints=tuple(np.zeros((0, 2)) for _ in range(views)), xyz=xyz,
-                          colors=rng.integers(0, 256, (20, 3)), errors=np.zeros(20), tracks=((),) * 20)
+    return SparseModel.from_tracks(K=K, sizes=np.tile([640, 480], (views, 1)), R=R, t=t,
+                                   names=tuple(f"frame_{i:03d}.png" for i in range(views)),
+                                   keypoints=tuple(np.zeros((0, 2)) for _ in range(views)), points=xyz,
+                                   colors=rng.integers(0, 256, (20, 3)), errors=np.zeros(20), tracks=((),) * 20)
 
 
 def test_write_smoke_and_layout(tmp_path):
@@ -67,6 +68,16 @@ def test_round_trip(tmp_path, shared):
     assert names == tuple(f"rgb/{name}" for name in rec.names)
 
 
+def test_only_registered_views_are_written(tmp_path):
+    rec = _reconstruction()
+    fields = {f.name: getattr(rec, f.name) for f in dataclasses.fields(SparseModel)}
+    part = SparseModel(**{**fields, "registered": np.array([True, False, True, True, False])})
+    K, sizes, R, t, names = read_transforms_json(write_transforms_json(tmp_path / "t.json", part))
+    assert names == ("images/frame_000.png", "images/frame_002.png", "images/frame_003.png")
+    np.testing.assert_allclose(R, rec.R[[0, 2, 3]], atol=1e-14)
+    np.testing.assert_allclose(t, rec.t[[0, 2, 3]], atol=1e-12)
+
+
 def test_read_instant_ngp_variant(tmp_path):
     """camera_angle_x only, no principal point (image centre), 3 x 4 matrices."""
     rec = _reconstruction(views=2)
@@ -86,7 +97,7 @@ def test_points_ply_is_written_and_referenced(tmp_path):
     path = write_transforms_json(tmp_path / "transforms.json", rec, points_ply="sparse_pc.ply")
     assert json.loads(path.read_text())["ply_file_path"] == "sparse_pc.ply"
     cloud = trimesh.load(tmp_path / "sparse_pc.ply")
-    np.testing.assert_allclose(np.asarray(cloud.vertices), rec.xyz, atol=1e-6)
+    np.testing.assert_allclose(np.asarray(cloud.vertices), rec.points, atol=1e-6)
     np.testing.assert_array_equal(np.asarray(cloud.colors)[:, :3], rec.colors)
 
 
@@ -94,8 +105,8 @@ def test_write_rejects_skew(tmp_path):
     rec = _reconstruction(views=2)
     K = rec.K.copy()
     K[:, 0, 1] = 1.0
-    skewed = Reconstruction(K, rec.sizes, rec.R, rec.t, rec.names, rec.keypoints, rec.xyz, rec.colors, rec.errors,
-                            rec.tracks)
+    skewed = SparseModel.from_tracks(K, rec.sizes, rec.R, rec.t, rec.names, rec.image_keypoints, rec.points,
+                                     rec.colors, rec.errors, rec.tracks)
     with pytest.raises(InvalidValue, match="skew"):
         write_transforms_json(tmp_path / "t.json", skewed)
 

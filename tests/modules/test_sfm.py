@@ -9,12 +9,11 @@ import pytest
 
 from lab.core import (Cameras, Curve, Image, ImageSet, InvalidValue, Loaded, MissingInput, PointCloud, Points2D,
                       Progress, Session, open_session)
-from lab.data.reconstruction import Reconstruction
 from lab.geometry.rotations import rotvec_to_matrix
 from lab.modules import MODULES, get_pipeline
-from lab.modules.sfm import (PIPELINE, SIFT_OFFSET_PX, align_poses, build_tracks, choose_initial_pair,
-                             detect_all_features, image_pairs, pose_errors, reconstruction_from_state,
-                             split_inconsistent, umeyama)
+from lab.modules.sfm import (MODEL_STAGES, PIPELINE, SIFT_OFFSET_PX, SparseModel, align_poses, build_tracks,
+                             choose_initial_pair, detect_all_features, image_pairs, pose_errors, split_inconsistent,
+                             umeyama)
 
 OPTIONS = {"num_views": 6, "width": 320, "height": 240}
 STEPS = [spec.name for spec in PIPELINE.steps]
@@ -48,12 +47,38 @@ def test_state_shapes_and_types(run):
     assert np.all(s["matches"][:, 0] < s["matches"][:, 1])
     assert s["view_graph"].shape[1] == 5 and s["pair_poses"].shape == (len(s["view_graph"]), 3, 4)
     assert s["track_of"].shape == (len(s["keypoints"]),)
-    assert s["poses"].shape == (views, 3, 4) and s["registered"].shape == (views,)
-    assert s["adjusted_points"].shape == (len(s["filtered_point_tracks"]), 3)
+    for name in MODEL_STAGES:  # one typed model per stage, on the session's images and keypoints
+        model = s[name]
+        assert isinstance(model, SparseModel) and len(model) == views, name
+        assert model.keypoints is s["keypoints"] and model.names == s["images"].names
+        if name != "adjusted_model":  # the final adjustment may refine K (refine_intrinsics)
+            np.testing.assert_array_equal(model.K, s["K"])
+    assert s["model"].poses.shape == (views, 3, 4) and s["model"].registered.shape == (views,)
+    adjusted = s["adjusted_model"]
+    assert adjusted.points.shape == (len(s["filtered_model"].point_tracks), 3)
     assert isinstance(s["cameras"], Cameras) and isinstance(s["points3d"], PointCloud)
-    np.testing.assert_array_equal(s["cameras"].views, np.flatnonzero(s["registered"]))
+    np.testing.assert_array_equal(s["cameras"].views, np.flatnonzero(adjusted.registered))
     assert isinstance(s["ba_cost"], Curve) and isinstance(s["registration_errors"], Curve)
-    assert len(s["point_errors"]) == len(s["adjusted_points"])
+    assert len(adjusted.errors) == len(adjusted.points)
+    assert adjusted.colors.dtype == np.uint8 and adjusted.colors.shape == (len(adjusted.points), 3)
+
+
+def test_each_models_errors_are_its_points_mean_reprojection_error(run):
+    session, _ = run
+    for name in MODEL_STAGES:
+        model = session.state[name]
+        kp, views, point = model.observations()
+        Xc = np.einsum("nij,nj->ni", model.R[views], model.points[point]) + model.t[views]
+        uv = np.einsum("nij,nj->ni", model.K[views], Xc / Xc[:, 2:])[:, :2]
+        errors = np.linalg.norm(uv - model.keypoints.xy[kp], axis=1)
+        counts = np.bincount(point, minlength=len(model.points))
+        assert counts.min() >= 2, name
+        mean = np.bincount(point, weights=errors, minlength=len(model.points)) / counts
+        np.testing.assert_allclose(model.errors, mean, rtol=1e-9, atol=1e-12, err_msg=name)
+    drawn = session.state["observations"]
+    kp, views, point = session.state["adjusted_model"].observations()
+    np.testing.assert_array_equal(drawn.ids, point)
+    np.testing.assert_array_equal(drawn.view, views)
 
 
 # --- known answers against the truth --------------------------------------------------------------------
@@ -82,19 +107,22 @@ def test_tracks_grow_beyond_the_match_graph(run):
 def test_model_tracks_see_each_image_once(run):
     session, _ = run
     s = session.state
-    tracks, views = s["model_track_of"], s["keypoints"].view
+    tracks, views = s["model"].track_of, s["keypoints"].view
+    for later in ("filtered_model", "adjusted_model"):  # filtering and adjusting keep the incremental step's tracks
+        np.testing.assert_array_equal(s[later].track_of, tracks)
     labelled = tracks >= 0
     pairs = np.column_stack([tracks[labelled], views[labelled]])
     assert len(np.unique(pairs, axis=0)) == len(pairs)
     # every point's track still has keypoints, and the observations are exactly the used keypoints of the tracks
-    assert np.all(np.isin(s["filtered_point_tracks"], tracks[labelled]))
-    counts = np.bincount(s["observations"].ids, minlength=len(s["adjusted_points"]))
+    assert np.all(np.isin(s["filtered_model"].point_tracks, tracks[labelled]))
+    counts = np.bincount(s["observations"].ids, minlength=len(s["adjusted_model"].points))
     assert counts.min() >= 2
     # two-view tracks are ignored (COLMAP's ignore_two_view_tracks): every point's track has three keypoints or more
     lengths = np.bincount(tracks[labelled])
-    assert lengths[s["point_tracks"]].min() >= 3
+    assert lengths[s["model"].point_tracks].min() >= 3
     initial = s["track_of"]
-    assert np.bincount(initial[initial >= 0])[s["initial_point_tracks"]].min() >= 3
+    np.testing.assert_array_equal(s["initial_model"].track_of, initial)
+    assert np.bincount(initial[initial >= 0])[s["initial_model"].point_tracks].min() >= 3
 
 
 def test_without_completion_or_two_view_filter_tracks_are_shorter(run):
@@ -108,7 +136,7 @@ def test_without_completion_or_two_view_filter_tracks_are_shorter(run):
     plain.run("reconstruct_incrementally", {"complete_tracks": False, "ignore_two_view_tracks": False})
     m = plain.metrics["reconstruct_incrementally"]
     assert m["observations_completed"] == 0 and m["tracks_merged"] == 0
-    np.testing.assert_array_equal(plain.state["model_track_of"], s["track_of"])
+    np.testing.assert_array_equal(plain.state["model"].track_of, s["track_of"])
     assert m["mean_track_length"] < session.metrics["reconstruct_incrementally"]["mean_track_length"] - 0.5
     assert m["points_total"] > session.metrics["reconstruct_incrementally"]["points_total"]
 
@@ -156,27 +184,37 @@ def test_incremental_step_yields_growing_previews(run):
     assert iterations == sorted(iterations) and len(set(iterations)) == len(iterations)
 
 
-def test_reconstruction_export_round_trips_through_colmap(run, tmp_path):
-    from lab.data.colmap import read_colmap_text, write_colmap_text
+def test_the_pipeline_exports_its_adjusted_model_as_colmap_and_transforms_json(run, tmp_path):
+    from lab.data.colmap import read_colmap_text
+    from lab.data.transforms_json import read_transforms_json
 
     session, _ = run
-    rec = reconstruction_from_state(session.state)
-    assert isinstance(rec, Reconstruction) and len(rec) == OPTIONS["num_views"]
-    assert len(rec.xyz) == len(session.state["adjusted_points"])
+    model = session.state["adjusted_model"]
+    rec = model.compact()
+    assert isinstance(rec, SparseModel) and len(rec) == OPTIONS["num_views"] and rec.registered.all()
+    assert len(rec.points) == len(model.points)
     # every track observation is a keypoint whose pixel reprojects close to the point
-    for j in range(0, len(rec.xyz), 97):
+    for j in range(0, len(rec.points), 97):
         for image, keypoint in rec.tracks[j]:
-            x = rec.K[image] @ (rec.R[image] @ rec.xyz[j] + rec.t[image])
-            assert np.linalg.norm(x[:2] / x[2] - rec.keypoints[image][keypoint]) < 2.0
-    write_colmap_text(tmp_path, rec)
-    assert read_colmap_text(tmp_path).equals(rec)
+            x = rec.K[image] @ (rec.R[image] @ rec.points[j] + rec.t[image])
+            assert np.linalg.norm(x[:2] / x[2] - rec.image_keypoints[image][keypoint]) < 2.0
+    assert sorted(PIPELINE.exports) == ["colmap", "transforms-json"]
+    colmap = PIPELINE.export("colmap")
+    assert colmap.reads == ("adjusted_model",) and PIPELINE.producer("adjusted_model").name == "bundle_adjust_all"
+    folder = colmap.write(session.state, session.metrics, tmp_path / "colmap")
+    assert read_colmap_text(folder).equals(rec)
+    written = PIPELINE.export("transforms-json").write(session.state, session.metrics, tmp_path / "transforms.json")
+    K, sizes, R, t, names = read_transforms_json(written)
+    np.testing.assert_allclose(R, rec.R, atol=1e-12)
+    np.testing.assert_allclose(t, rec.t, atol=1e-12)
+    np.testing.assert_allclose(K, rec.K, atol=1e-9)
+    assert names == tuple(f"images/{name}" for name in rec.names)
 
 
-def test_reconstruction_from_state_needs_a_model():
-    state = {"images": ImageSet((Image(np.zeros((8, 8))),) * 2), "keypoints": Points2D(np.zeros((0, 2)), view=[]),
-             "track_of": np.zeros(0, dtype=np.int64), "K": np.eye(3)[None].repeat(2, 0)}
-    with pytest.raises(InvalidValue, match="no reconstruction yet"):
-        reconstruction_from_state(state)
+def test_the_export_needs_the_adjusted_model(tmp_path):
+    with pytest.raises(MissingInput, match="run bundle_adjust_all first"):
+        PIPELINE.export("colmap").write({}, {}, tmp_path / "model")
+    assert not (tmp_path / "model").exists()
 
 
 def test_sift_offset_is_removed():

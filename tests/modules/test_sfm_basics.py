@@ -3,6 +3,7 @@ the bundle-adjustment sparsity pattern, bundle adjustment), against the truth, O
 
 from __future__ import annotations
 
+import dataclasses
 import json
 
 import cv2
@@ -182,10 +183,21 @@ def test_non_linear_triangulation_lowers_the_error():
     loaded = scene(noise_px=1.0)
     obs, K, poses = loaded.state["observations"], loaded.state["K"], poses_of(loaded.truth)
     linear = triangulate_points_linear(obs, poses, K)
-    refined = refine_points_nonlinear(linear, obs, poses, K)
+    refined = refine_points_nonlinear(linear, obs, poses, K, loaded.state["image_size"])
     assert refined.rms_refined_px < refined.rms_linear_px
     assert refined.points_behind_linear == 0
-    assert np.sqrt(np.mean(np.sum((refined.points - loaded.truth["X"]) ** 2, axis=1))) < 0.05
+    model = refined.model
+    assert np.sqrt(np.mean(np.sum((model.points - loaded.truth["X"]) ** 2, axis=1))) < 0.05
+    # the model is the scene: the cameras given, every observation a keypoint of its point's track
+    np.testing.assert_array_equal(model.poses, poses)
+    kp, views, point = model.observations()
+    np.testing.assert_array_equal(kp, np.arange(len(obs)))
+    np.testing.assert_array_equal(views, obs.view)
+    np.testing.assert_array_equal(point, obs.ids)
+    assert model.registered.all() and np.all(model.K == K)
+    Xc = np.einsum("mij,mj->mi", poses[obs.view, :, :3], model.points[obs.ids]) + poses[obs.view, :, 3]
+    errors = np.linalg.norm(Xc[:, :2] / Xc[:, 2:] @ K[:2, :2].T + K[:2, 2] - obs.xy, axis=1)
+    np.testing.assert_allclose(model.errors, np.bincount(obs.ids, errors) / np.bincount(obs.ids), rtol=1e-9)
 
 
 def test_triangulation_errors_name_the_problem():
@@ -243,28 +255,33 @@ def test_bundle_adjustment_lowers_the_error_and_a_wrong_pattern_does_worse(noisy
     state, metrics = noisy_run.state, noisy_run.metrics["bundle_adjust_scene"]
     assert metrics["ba_improved"] and metrics["ba_rms_px"] < metrics["ba_rms_before_px"]
     assert metrics["sparsity_missing"] == 0 and metrics["sparsity_extra"] == 0
-    assert state["ba_poses"].shape == state["poses"].shape and state["ba_points"].shape == state["points"].shape
-    assert np.array_equal(state["ba_poses"][0], state["poses"][0])  # the first camera is held
-    args = (state["poses"], state["points"], state["observations"], state["K"])
+    adjusted, model = state["adjusted_model"], state["model"]
+    assert adjusted.poses.shape == state["poses"].shape and adjusted.points.shape == model.points.shape
+    np.testing.assert_array_equal(model.poses, state["poses"])
+    assert np.array_equal(adjusted.poses[0], state["poses"][0])  # the first camera is held
+    assert adjusted.errors.mean() < model.errors.mean()
     pattern = state["sparsity"]
     no_points = pattern.copy()
     no_points[:, 6 * state["num_cameras"]:] = False
-    without = bundle_adjust_scene(*args, no_points, state["image_size"])
+    without = bundle_adjust_scene(model, no_points)
     assert without.sparsity_missing == 2 * len(state["observations"]) * 3 and without.sparsity_extra == 0
     assert without.ba_rms_px > 1.05 * metrics["ba_rms_px"]
-    dense = bundle_adjust_scene(*args, np.ones_like(pattern), state["image_size"], max_iterations=5)
+    dense = bundle_adjust_scene(model, np.ones_like(pattern), max_iterations=5)
     assert dense.sparsity_extra == pattern.size - pattern.sum()
     assert dense.ba_rms_px < dense.ba_rms_before_px  # right derivatives, only more evaluations
 
 
 def test_bundle_adjustment_errors_name_the_problem(noisy_run):
     state = noisy_run.state
-    args = (state["poses"], state["points"], state["observations"], state["K"])
+    model = state["model"]
     with pytest.raises(InvalidValue, match="expected shape"):
-        bundle_adjust_scene(*args, state["sparsity"].T, state["image_size"])
-    with pytest.raises(InvalidValue, match="points"):
-        bundle_adjust_scene(state["poses"], state["points"][:5], state["observations"], state["K"],
-                            state["sparsity"], state["image_size"])
+        bundle_adjust_scene(model, state["sparsity"].T)
+    fewer = dataclasses.replace(model, points=model.points[:5], point_tracks=model.point_tracks[:5],
+                                colors=model.colors[:5], errors=model.errors[:5])  # the pattern's points are not all there
+    with pytest.raises(InvalidValue, match=r"expected shape .* per point"):
+        bundle_adjust_scene(fewer, state["sparsity"])
+    with pytest.raises(InvalidValue, match="SparseModel"):
+        bundle_adjust_scene(state["points3d"], state["sparsity"])
 
 
 # --- the pipeline as a whole ----------------------------------------------------------------------------
@@ -272,7 +289,7 @@ def test_pipeline_is_deterministic_encodable_and_not_registered(noisy_run):
     assert "sfm_basics" not in MODULES
     again = open_session(PIPELINE, "synthetic", {"seed": 5}, seed=5)
     again.run_until("bundle_adjust_scene")
-    assert np.array_equal(again.state["ba_points"], noisy_run.state["ba_points"])
+    assert np.array_equal(again.state["adjusted_model"].points, noisy_run.state["adjusted_model"].points)
     assert again.metrics == noisy_run.metrics
     for name, value in noisy_run.state.items():
         json.dumps(to_json(value))  # every state value has a JSON form

@@ -7,11 +7,12 @@ import numpy as np
 import pytest
 
 from lab.core import InvalidValue, MissingInput, Points2D
+from lab.data.reconstruction import SparseModel
 from lab.modules.sfm import PIPELINE
 from lab.viewer.app import ClientView, ModuleCatalog
 from lab.viewer.interactions import EXPLORE_ROOT, interactions_for
-from lab.viewer.interactions.sfm import (INTERACTIONS, TrackExplorer, error_colors, latest_model,
-                                         nearest_point_to_ray, point_errors_of, track_observations)
+from lab.viewer.interactions.sfm import (INTERACTIONS, MODEL_VIEWS, TrackExplorer, error_colors, latest_model,
+                                         nearest_point_to_ray, track_observations)
 
 OPTIONS = {"num_views": 4, "width": 240, "height": 180, "arc_deg": 45.0}
 
@@ -30,8 +31,10 @@ def two_camera_model():
             pixels.append(x[:2] / x[2])
     pixels = np.array(pixels)
     pixels[3] += [3.0, 0.0]
-    observations = Points2D(pixels, view=np.array([0, 1, 0, 1]), ids=np.array([0, 0, 1, 1]))
-    return {"poses": poses, "K": np.stack([K, K]), "points": points, "observations": observations}
+    return SparseModel(K=np.stack([K, K]), poses=poses, registered=np.ones(2, dtype=bool), names=("a.png", "b.png"),
+                       sizes=np.array([[100, 80], [100, 80]]), keypoints=Points2D(pixels, view=np.array([0, 1, 0, 1])),
+                       track_of=np.array([0, 0, 1, 1]), observed=np.ones(4, dtype=bool), points=points,
+                       point_tracks=np.array([0, 1]), colors=np.zeros((2, 3)), errors=np.array([0.0, 1.5]))
 
 
 def test_interactions_are_found_by_the_pipeline_name():
@@ -40,13 +43,15 @@ def test_interactions_are_found_by_the_pipeline_name():
 
 def test_track_observations_known_answer():
     model = two_camera_model()
-    first = track_observations(model, 0, ("a.png", "b.png"))
+    first = track_observations(model, 0)
     assert [o.name for o in first] == ["a.png", "b.png"]
     assert all(o.error_px < 1e-9 for o in first)
     np.testing.assert_allclose(first[1].center, [1.0, 0.0, 0.0])
     second = track_observations(model, 1)
     assert second[1].error_px == pytest.approx(3.0)
-    np.testing.assert_allclose(point_errors_of(model), [0.0, 1.5], atol=1e-9)
+    means = [np.mean([o.error_px for o in track_observations(model, j)]) for j in (0, 1)]
+    np.testing.assert_allclose(means, [0.0, 1.5], atol=1e-9)  # each point's mean error, as the model says
+    np.testing.assert_allclose(means, model.errors, atol=1e-9)
     with pytest.raises(InvalidValue, match="no point 2"):
         track_observations(model, 2)
 
@@ -61,6 +66,10 @@ def test_nearest_point_to_ray_and_error_colours():
     np.testing.assert_allclose(colors[0], [0.1, 0.8, 0.2])
     np.testing.assert_allclose(colors[2], [0.9, 0.1, 0.1])
     assert latest_model({}) is None
+    model = two_camera_model()
+    assert latest_model({"model": model}) is model
+    assert latest_model({"model": two_camera_model(), "filtered_model": model}) is model  # the most refined
+    assert set(MODEL_VIEWS) <= PIPELINE.views
 
 
 @pytest.fixture(scope="module")
@@ -96,6 +105,7 @@ def test_pick_a_point_shows_its_track(view, reconstructed):
     model = latest_model(reconstructed)
     assert model is not None
     observations = part.pick_point(0)
+    assert model is reconstructed["adjusted_model"]
     expected = np.flatnonzero(reconstructed["observations"].ids == 0)
     assert len(observations) == len(expected) >= 2
     assert all(o.error_px < 2.0 for o in observations)  # the filter kept only these
@@ -103,12 +113,12 @@ def test_pick_a_point_shows_its_track(view, reconstructed):
     assert "seen in" in part.table.content
     # a click ray through the point picks it
     center = observations[0].center
-    X = model["points"][5]
+    X = model.points[5]
     again = part.click_ray(center, X - center)
     assert len(again) == int(np.sum(reconstructed["observations"].ids == 5))
     part.by_error.value = True
     colors = part.draw_errors()
-    assert colors.shape == (len(model["points"]), 3)
+    assert colors.shape == (len(model.points), 3)
     assert "errors" in part.scene_nodes()
 
 
@@ -120,7 +130,7 @@ def test_survives_a_reset_and_reports_bad_picks(view, reconstructed):
     part = explorer(view)
     with pytest.raises(InvalidValue, match="no point"):
         part.pick_point(10 ** 7)
-    session.state = {k: v for k, v in reconstructed.items() if k not in ("observations",)}
+    session.state = {k: v for k, v in reconstructed.items() if k not in MODEL_VIEWS}
     session.version += 1
     view.refresh(force=True)
     assert part.model is None and part.scene_nodes() == []

@@ -33,7 +33,12 @@ camera path. The math is split by topic: :mod:`~lab.modules.sfm.pairs`, :mod:`~l
 :mod:`~lab.modules.sfm.model` (the growing model), :mod:`~lab.modules.sfm.registration` (the
 incremental loop); the datasets are in :mod:`lab.modules.sfm.datasets`.
 
-State names (float64 unless said; V views, N keypoints, T tracks, P points):
+The model is typed: every stage from the two-view one on is a
+:class:`~lab.data.reconstruction.SparseModel` (cameras, registered views, keypoints and tracks,
+points with their colours and errors), one state name per stage; the pipeline exports the last one
+(:data:`EXPORTS`: COLMAP text, transforms.json) and lists the names the viewer reads (:data:`VIEWS`).
+
+State names (float64 unless said; V views, N keypoints, P points):
     images              ImageSet (V)      the photos (dataset)
     K                   (V, 3, 3)         camera matrix of each view (dataset)
     keypoints           Points2D          SIFT keypoints of every view (``view``), coloured from the images
@@ -45,14 +50,12 @@ State names (float64 unless said; V views, N keypoints, T tracks, P points):
     track_of            (N,) int          the track of each keypoint (-1: none)
     initial_pair        (2,) int          the two views the reconstruction starts from
     initial_pose        (3, 4)            ``[R | t]`` of the second initial view (the first is the world frame)
-    initial_points_dlt  (P, 3)            linear triangulation of the pair's tracks; initial_point_tracks (P,) int
-    initial_*           the two-view model: poses (V, 3, 4), registered (V,) bool, points (P, 3), point_tracks (P,)
-    poses, registered, points, point_tracks, observed
-                        the incremental model; ``observed`` (N,) bool: keypoints still used as observations
-    model_track_of      (N,) int          the track of each keypoint after the incremental step continued,
-                                          completed and merged tracks (``point_tracks`` and later steps use it)
-    filtered_points, filtered_point_tracks, filtered_observed   after filtering
-    adjusted_poses, adjusted_K, adjusted_points, point_errors     after the final bundle adjustment
+    initial_model_dlt   SparseModel       the two-view model, points by linear triangulation
+    initial_model       SparseModel       the two-view model, points by non-linear triangulation
+    model               SparseModel       the incremental model (its ``track_of``: the tracks continued,
+                                          completed and merged)
+    filtered_model      SparseModel       after filtering
+    adjusted_model      SparseModel       after the final bundle adjustment (its ``K`` refined when asked)
     cameras             Cameras           the registered cameras so far (``views``: their images)
     points3d            PointCloud        the points so far, coloured from the images
     observations        Points2D          every observation of a reconstructed point (``ids``: its point)
@@ -61,11 +64,12 @@ State names (float64 unless said; V views, N keypoints, T tracks, P points):
 from __future__ import annotations
 
 from lab.core import Pipeline
+from lab.data.reconstruction import SparseModel
 from lab.modules.sfm.datasets import (FOCAL_GUESS_FACTOR, camera_path, check_intrinsics, exif_focal_px, match_files,
                                       matches_from_match_files, photos, read_k_matrix, rendered, scene_extent)
-from lab.modules.sfm.evaluate import align_poses, evaluate_initial, evaluate_poses, pose_errors, umeyama
-from lab.modules.sfm.export import reconstruction_from_state
-from lab.modules.sfm.model import GrowingModel
+from lab.modules.sfm.evaluate import align_poses, evaluate_initial, evaluate_model, pose_errors, umeyama
+from lab.modules.sfm.export import EXPORTED_MODEL, EXPORTS
+from lab.modules.sfm.model import GrowingModel, error_colors
 from lab.modules.sfm.pairs import image_pairs
 from lab.modules.sfm.registration import RegistrationFailed
 from lab.modules.sfm.steps import (PNP_MINIMUM, SIFT_OFFSET_PX, AdjustedModel, Features, FilteredModel,
@@ -75,6 +79,12 @@ from lab.modules.sfm.steps import (PNP_MINIMUM, SIFT_OFFSET_PX, AdjustedModel, F
                                    match_all_pairs, reconstruct_incrementally, refine_initial_points,
                                    triangulate_initial, verify_pairs)
 from lab.modules.sfm.tracks import complete_and_merge, keypoint_trees, split_inconsistent, unit_descriptors
+
+#: The models of the stages, in pipeline order (one state name each).
+MODEL_STAGES = ("initial_model_dlt", "initial_model", "model", "filtered_model", "adjusted_model")
+
+#: State names the viewer's interactions (:mod:`lab.viewer.interactions.sfm`) read by name.
+VIEWS = ("model", "filtered_model", "adjusted_model")
 
 PIPELINE = Pipeline.build(
     name="sfm",
@@ -86,13 +96,15 @@ PIPELINE = Pipeline.build(
     steps=[detect_all_features, match_all_pairs, verify_pairs, build_tracks, choose_initial_pair, initialize_pose,
            triangulate_initial, refine_initial_points, reconstruct_incrementally, filter_points, bundle_adjust_all],
     datasets=[rendered, photos, match_files],
-    evaluations={"initialize_pose": evaluate_initial,
-                 "refine_initial_points": evaluate_poses("initial_poses", "initial_registered"),
-                 "reconstruct_incrementally": evaluate_poses("poses"),
-                 "bundle_adjust_all": evaluate_poses("adjusted_poses")},
+    evaluations={"initialize_pose": evaluate_initial, "refine_initial_points": evaluate_model("initial_model"),
+                 "reconstruct_incrementally": evaluate_model("model"),
+                 "bundle_adjust_all": evaluate_model("adjusted_model")},
+    exports=EXPORTS,
+    views=VIEWS,
 )
 
-__all__ = ["PIPELINE", "PNP_MINIMUM", "SIFT_OFFSET_PX", "RegistrationFailed",
+__all__ = ["PIPELINE", "MODEL_STAGES", "VIEWS", "EXPORTS", "EXPORTED_MODEL", "PNP_MINIMUM", "SIFT_OFFSET_PX",
+           "RegistrationFailed", "SparseModel",
            # steps and their results, in pipeline order
            "detect_all_features", "Features", "match_all_pairs", "PairMatches", "verify_pairs", "VerifiedPairs",
            "build_tracks", "Tracks", "choose_initial_pair", "InitialPair", "initialize_pose", "InitialPose",
@@ -101,9 +113,9 @@ __all__ = ["PIPELINE", "PNP_MINIMUM", "SIFT_OFFSET_PX", "RegistrationFailed",
            "AdjustedModel",
            # the math the steps use, by topic
            "image_pairs", "split_inconsistent", "unit_descriptors", "GrowingModel", "keypoint_trees",
-           "complete_and_merge",
+           "complete_and_merge", "error_colors",
            # datasets and what they are made of
            "rendered", "photos", "match_files", "camera_path", "scene_extent", "check_intrinsics", "read_k_matrix",
            "exif_focal_px", "matches_from_match_files", "FOCAL_GUESS_FACTOR",
-           # comparisons with the truth, export
-           "umeyama", "align_poses", "pose_errors", "reconstruction_from_state"]
+           # comparisons with the truth
+           "umeyama", "align_poses", "pose_errors"]

@@ -8,6 +8,7 @@ from typing import Any
 import numpy as np
 
 from lab.core import ImageSet, InvalidValue, Points2D
+from lab.data.reconstruction import SparseModel
 
 
 def check_images(images: Any) -> ImageSet:
@@ -69,3 +70,12 @@ def check_descriptors(descriptors: Any, keypoints: Points2D) -> np.ndarray:
     if descriptors.ndim != 2 or len(descriptors) != len(keypoints):
         raise InvalidValue("descriptors", f"expected one row per keypoint ({len(keypoints)}), got {descriptors.shape}")
     return descriptors
+
+
+def check_model(model: Any, name: str) -> SparseModel:
+    """A :class:`SparseModel` with at least one registered view."""
+    if not isinstance(model, SparseModel):
+        raise InvalidValue(name, f"expected a SparseModel, got {type(model).__name__}")
+    if not model.registered.any():
+        raise InvalidValue(name, "the model has no registered view")
+    return model

@@ -82,16 +82,16 @@ def registered_pose_errors(poses: np.ndarray, registered: np.ndarray, truth: dic
                        truth.get("scene_size", 1.0))
 
 
-def evaluate_poses(poses_name: str,
-                   registered_name: str = "registered") -> Callable[[dict[str, Any], dict[str, Any]], dict[str, float]]:
-    """An evaluation of the registered cameras of one stage (:func:`registered_pose_errors`)."""
+def evaluate_model(name: str) -> Callable[[dict[str, Any], dict[str, Any]], dict[str, float]]:
+    """An evaluation of the registered cameras of the model in state ``name`` (:func:`registered_pose_errors`)."""
 
     def evaluate(state: dict[str, Any], truth: dict[str, Any]) -> dict[str, float]:
-        if not truth or "R" not in truth or poses_name not in state or registered_name not in state:
+        if not truth or "R" not in truth or name not in state:
             return {}
-        return registered_pose_errors(state[poses_name], state[registered_name], truth)
+        model = state[name]
+        return registered_pose_errors(model.poses, model.registered, truth)
 
-    evaluate.__name__ = f"evaluate_{poses_name}"
+    evaluate.__name__ = f"evaluate_{name}"
     return evaluate
 
 

@@ -1,9 +1,10 @@
-"""The reconstruction while a step grows it (:class:`GrowingModel`), and what is measured and drawn of it.
+"""The reconstruction while a step grows it (:class:`GrowingModel`), and what is measured of it.
 
-A step thaws its input model into a :class:`GrowingModel` (mutable arrays it changes in place), works
-on it, and writes a copy to the state. Observations are implicit: keypoint ``k`` observes point
-``p`` when its track (``track_of[k]``) is the point's (``point_tracks[p]``), its view is registered
-and it is still ``observed``.
+A step reads a :class:`~lab.data.reconstruction.SparseModel`, thaws it into a :class:`GrowingModel`
+(:meth:`GrowingModel.of`: copies of the arrays it changes in place), works on it, and writes the
+result as a new SparseModel (:func:`freeze`). Observations are implicit, as in the SparseModel:
+keypoint ``k`` observes point ``p`` when its track (``track_of[k]``) is the point's
+(``point_tracks[p]``), its view is registered and it is still ``observed``.
 """
 
 from __future__ import annotations
@@ -13,7 +14,8 @@ from typing import Any
 
 import numpy as np
 
-from lab.core import Cameras, ImageSet, InvalidValue, PointCloud, Points2D
+from lab.core import Points2D
+from lab.data.reconstruction import SparseModel, observations_of
 from lab.modules.sfm._checks import keypoint_views
 
 
@@ -63,6 +65,12 @@ class GrowingModel:
     point_tracks: np.ndarray
     observed: np.ndarray
 
+    @classmethod
+    def of(cls, model: SparseModel) -> GrowingModel:
+        """A growing copy of ``model`` (its tracks ``model.track_of`` stay apart: copy them to change them)."""
+        return cls(model.poses.copy(), model.registered.copy(), model.points.copy(), model.point_tracks.copy(),
+                   model.observed.copy())
+
     def point_of_track(self, num_tracks: int) -> np.ndarray:
         """The point of every track ``(T,)`` (-1: none)."""
         size = max(num_tracks, int(self.point_tracks.max()) + 1 if len(self.point_tracks) else 0)
@@ -71,15 +79,10 @@ class GrowingModel:
         return out
 
     def observations(self, keypoints: Points2D, track_of: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """``(keypoint index, view, point index)`` of every usable observation of a reconstructed point."""
-        view = keypoint_views(keypoints)
-        num_tracks = int(track_of.max()) + 1 if len(track_of) and track_of.max() >= 0 else 0
-        of_track = self.point_of_track(num_tracks)
-        point = np.where(track_of >= 0, of_track[np.maximum(track_of, 0)], -1) if num_tracks else \
-            np.full(len(track_of), -1)
-        use = (point >= 0) & self.registered[view] & self.observed
-        kp = np.flatnonzero(use)
-        return kp, view[kp], point[kp]
+        """``(keypoint index, view, point index)`` of every usable observation of a reconstructed point
+        (:func:`lab.data.reconstruction.observations_of`)."""
+        return observations_of(keypoint_views(keypoints), track_of, self.point_tracks, self.registered,
+                               self.observed)
 
     def copy(self) -> GrowingModel:
         return GrowingModel(self.poses.copy(), self.registered.copy(), self.points.copy(), self.point_tracks.copy(),
@@ -115,36 +118,28 @@ def point_colors(keypoints: Points2D, model: GrowingModel, track_of: np.ndarray)
     return np.where(counts > 0, sums / np.maximum(counts, 1), 0.7)
 
 
-def registered_cameras(images: ImageSet, K: np.ndarray, poses: np.ndarray, registered: np.ndarray,
-                       colors: np.ndarray | None = None) -> Cameras:
-    """The registered views as drawn cameras (``views``: their images)."""
-    views = np.flatnonzero(registered)
-    return Cameras(K=K[views], R=poses[views, :, :3], t=poses[views, :, 3], width=images[0].width,
-                   height=images[0].height, image="images", views=views, colors=colors)
-
-
-def drawn(images: ImageSet, K: np.ndarray, keypoints: Points2D, model: GrowingModel,
-          track_of: np.ndarray) -> tuple[Cameras, PointCloud, Points2D]:
-    """The cameras, the coloured points and every observation's pixel, as the viewer draws them."""
+def point_errors(model: GrowingModel, K: np.ndarray, keypoints: Points2D, track_of: np.ndarray) -> np.ndarray:
+    """Mean reprojection error (px) of each point's observations ``(P,)``; observations behind their camera
+    do not count, a point without any gets 0."""
     kp, views, point = model.observations(keypoints, track_of)
-    cloud = PointCloud(model.points, colors=np.clip(point_colors(keypoints, model, track_of), 0, 1))
-    observations = Points2D(keypoints.xy[kp], view=views, ids=point, image="images")
-    return registered_cameras(images, K, model.poses, model.registered), cloud, observations
+    errors = observation_errors(model, K, keypoints, kp, views, point)
+    finite = np.isfinite(errors)
+    counts = np.bincount(point[finite], minlength=len(model.points))
+    sums = np.bincount(point[finite], weights=errors[finite], minlength=len(model.points))
+    return np.where(counts > 0, sums / np.maximum(counts, 1), 0.0)
 
 
-def model_from(poses: Any, registered: Any, points: Any, point_tracks: Any, views: int, keypoints: Points2D,
-               observed: Any = None) -> GrowingModel:
-    """A :class:`GrowingModel` of state arrays, checked (copies: the state is not changed)."""
-    poses = np.asarray(poses, dtype=np.float64)
-    registered = np.asarray(registered, dtype=bool)
-    points = np.asarray(points, dtype=np.float64)
-    tracks = np.asarray(point_tracks, dtype=np.int64)
-    if poses.shape != (views, 3, 4) or registered.shape != (views,):
-        raise InvalidValue("poses", f"expected poses ({views}, 3, 4) and registered ({views},), got {poses.shape} and "
-                                    f"{registered.shape}")
-    if points.shape != (len(tracks), 3):
-        raise InvalidValue("points", f"expected ({len(tracks)}, 3) points, one per track id, got {points.shape}")
-    observed = np.ones(len(keypoints), dtype=bool) if observed is None else np.asarray(observed, dtype=bool)
-    if observed.shape != (len(keypoints),):
-        raise InvalidValue("observed", f"expected ({len(keypoints)},) bool, got {observed.shape}")
-    return GrowingModel(poses.copy(), registered.copy(), points.copy(), tracks.copy(), observed.copy())
+def freeze(model: GrowingModel, track_of: np.ndarray, K: np.ndarray, keypoints: Points2D, names: tuple[str, ...],
+           sizes: np.ndarray) -> SparseModel:
+    """The growing ``model`` with its tracks ``track_of`` as a :class:`SparseModel` (copies), with each
+    point's colour (the mean over its observations) and reprojection error (:func:`point_errors`)."""
+    colors = np.round(255 * np.clip(point_colors(keypoints, model, track_of), 0, 1)).astype(np.uint8)
+    return SparseModel(K=K, poses=model.poses, registered=model.registered, names=names, sizes=sizes,
+                       keypoints=keypoints, track_of=track_of, observed=model.observed, points=model.points,
+                       point_tracks=model.point_tracks, colors=colors,
+                       errors=point_errors(model, K, keypoints, track_of))
+
+
+def refreeze(model: GrowingModel, track_of: np.ndarray, like: SparseModel, K: np.ndarray | None = None) -> SparseModel:
+    """:func:`freeze` with the images (names, sizes), keypoints and, unless given, ``K`` of ``like``."""
+    return freeze(model, track_of, like.K if K is None else K, like.keypoints, like.names, like.sizes)

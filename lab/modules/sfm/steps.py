@@ -9,20 +9,21 @@ import numpy as np
 
 from lab.core import (Cameras, Curve, ImageSet, InvalidValue, PointCloud, Points2D, Progress, Range, StepFailed,
                       metric)
+from lab.data.reconstruction import SparseModel
 from lab.core.step import Warnings, step_result
 from lab.geometry.camera import pixels_to_normalized
 from lab.geometry.triangulation import point_depths, projection_matrix, refine_points, reprojection_residuals, \
     triangulate_dlt
 from lab.modules import epipolar
-from lab.modules.sfm._checks import (check_images, check_keypoints, check_matches, check_pair, check_track_of,
-                                    keypoint_views)
+from lab.modules.sfm._checks import (check_images, check_keypoints, check_matches, check_model, check_pair,
+                                    check_track_of, keypoint_views)
 from lab.modules.sfm.datasets import check_intrinsics
-from lab.modules.sfm.model import (GrowingModel, drawn, error_colors, model_from, observation_errors, poses_matrix,
-                                   ray_angles_deg, registered_cameras, sample_colors)
+from lab.modules.sfm.model import (GrowingModel, error_colors, freeze, observation_errors, poses_matrix, ray_angles_deg,
+                                   refreeze, sample_colors)
 from lab.modules.sfm.pairs import image_pairs, pair_parallax, pair_rows
 from lab.modules.sfm.registration import (Adjustment, Incremental, Registration, TrackGrowth, Triangulation, bundle,
                                           weighted_rms)
-from lab.modules.sfm.tracks import (connected_tracks, keypoint_trees, model_tracks, pair_observations, track_lengths,
+from lab.modules.sfm.tracks import (connected_tracks, keypoint_trees, pair_observations, track_lengths,
                                     unit_descriptors_of)
 
 #: Fewest 2D-3D correspondences the linear PnP (DLT) can use.
@@ -388,8 +389,7 @@ def initialize_pose(images: ImageSet, keypoints: Points2D, inlier_matches: np.nd
 class InitialPoints:
     """Result of :func:`triangulate_initial`."""
 
-    initial_points_dlt: np.ndarray
-    initial_point_tracks: np.ndarray
+    initial_model_dlt: SparseModel
     warnings: Warnings
     points: int = metric("points kept")
     dropped_behind: int = metric("points behind a camera, dropped")
@@ -398,10 +398,11 @@ class InitialPoints:
     ignored_two_view: int = metric("tracks seen by the two initial images only, not triangulated")
 
 
-def triangulate_initial(keypoints: Points2D, track_of: np.ndarray, K: np.ndarray, initial_pair: np.ndarray,
-                        initial_pose: np.ndarray, *, min_angle_deg: Annotated[float, Range(0.0, 30.0)] = 1.0,
+def triangulate_initial(images: ImageSet, keypoints: Points2D, track_of: np.ndarray, K: np.ndarray,
+                        initial_pair: np.ndarray, initial_pose: np.ndarray, *,
+                        min_angle_deg: Annotated[float, Range(0.0, 30.0)] = 1.0,
                         ignore_two_view_tracks: bool = True) -> InitialPoints:
-    """Linear (DLT) triangulation of the tracks seen in both initial views (``triangulate_dlt``).
+    """Linear (DLT) triangulation of the tracks seen in both initial views (``triangulate_dlt``): the two-view model.
 
     ``P1 = K1 [I | 0]``, ``P2 = K2 [R | t]``; each point is the null vector of its ``4 x 4`` DLT
     system. Points behind either camera (cheirality) or whose two rays meet at less than
@@ -415,15 +416,17 @@ def triangulate_initial(keypoints: Points2D, track_of: np.ndarray, K: np.ndarray
         ignore_two_view_tracks: do not triangulate tracks of two keypoints (COLMAP's
             ``ignore_two_view_tracks``, on by default there too).
 
-    Returns ``initial_points_dlt`` ``(P, 3)`` and their tracks ``initial_point_tracks`` ``(P,)``.
-    Corresponds to ``cv2.triangulatePoints(P1, P2, x1.T, x2.T)``.
+    Returns ``initial_model_dlt``, the :class:`~lab.data.reconstruction.SparseModel` of the two
+    views (the first at the origin, the second at ``initial_pose``) and the DLT points, on the tracks
+    of ``build_tracks``. Corresponds to ``cv2.triangulatePoints(P1, P2, x1.T, x2.T)``.
 
     Reference: H&Z section 12.2.
     """
-    keypoints = check_keypoints(keypoints)
+    images = check_images(images)
+    keypoints = check_keypoints(keypoints, len(images))
     track_of = check_track_of(track_of, keypoints)
-    K = np.asarray(K, dtype=np.float64)
-    a, b = check_pair(initial_pair, len(K))
+    K = check_intrinsics(K, images)
+    a, b = check_pair(initial_pair, len(images))
     pose = np.asarray(initial_pose, dtype=np.float64).reshape(3, 4)
     tracks, ka, kb = pair_observations(keypoints, track_of, a, b)
     ignored = 0
@@ -446,18 +449,22 @@ def triangulate_initial(keypoints: Points2D, track_of: np.ndarray, K: np.ndarray
     residual = reprojection_residuals(P, X[keep], x[:, keep])
     rms = float(np.sqrt(np.mean(np.sum(residual**2, axis=2)))) if keep.any() else 0.0
     warnings = () if keep.sum() >= 50 else (f"only {int(keep.sum())} points from the initial pair",)
-    return InitialPoints(X[keep], tracks[keep], warnings, int(keep.sum()), int(np.sum(~front)),
-                         int(np.sum(front & ~wide)), rms, ignored)
+    poses = np.zeros((len(images), 3, 4))
+    poses[a] = poses_matrix(np.eye(3), np.zeros(3))
+    poses[b] = pose
+    registered = np.zeros(len(images), dtype=bool)
+    registered[[a, b]] = True
+    two_view = GrowingModel(poses, registered, X[keep], tracks[keep], np.ones(len(keypoints), dtype=bool))
+    sizes = np.array([[image.width, image.height] for image in images.images])
+    return InitialPoints(freeze(two_view, track_of, K, keypoints, images.names, sizes), warnings,
+                         int(keep.sum()), int(np.sum(~front)), int(np.sum(front & ~wide)), rms, ignored)
 
 
 @step_result
 class InitialModel:
     """Result of :func:`refine_initial_points`."""
 
-    initial_poses: np.ndarray
-    initial_registered: np.ndarray
-    initial_points: np.ndarray
-    initial_point_tracks: np.ndarray
+    initial_model: SparseModel
     cameras: Cameras
     points3d: PointCloud
     triangulation_cost: Curve
@@ -466,56 +473,40 @@ class InitialModel:
     points: int = metric("points of the two-view model")
 
 
-def refine_initial_points(images: ImageSet, keypoints: Points2D, track_of: np.ndarray, K: np.ndarray,
-                          initial_pair: np.ndarray, initial_pose: np.ndarray, initial_points_dlt: np.ndarray,
-                          initial_point_tracks: np.ndarray, *,
+def refine_initial_points(initial_model_dlt: SparseModel, initial_pair: np.ndarray, *,
                           iterations: Annotated[int, Range(0, 100)] = 10) -> InitialModel:
     """Non-linear triangulation: move each point to minimize its reprojection error in both views (cameras fixed).
 
     Levenberg-Marquardt per point on ``|pi(P1 X) - x1|^2 + |pi(P2 X) - x2|^2``
     (:func:`lab.geometry.triangulation.refine_points`), the maximum-likelihood point under
-    Gaussian pixel noise where the DLT minimized an algebraic error. Then the two-view model: the
-    first view at the origin, the second at ``initial_pose``.
+    Gaussian pixel noise where the DLT minimized an algebraic error.
 
     Args:
         iterations: most Levenberg-Marquardt iterations (0: keep the DLT points).
 
-    Returns the two-view model (``initial_poses`` ``(V, 3, 4)``, ``initial_registered`` ``(V,)``,
-    ``initial_points``, ``initial_point_tracks``), ``cameras``, ``points3d`` and the RMS per
-    iteration. No single OpenCV call.
+    Returns ``initial_model``, the two-view model with the refined points, ``cameras``,
+    ``points3d`` and the RMS per iteration. No single OpenCV call.
 
     Reference: H&Z section 12.5 (the maximum-likelihood criterion) and appendix A6.2.
     """
-    images = check_images(images)
-    keypoints = check_keypoints(keypoints, len(images))
-    view = keypoint_views(keypoints)
-    track_of = check_track_of(track_of, keypoints)
-    K = check_intrinsics(K, images)
-    a, b = check_pair(initial_pair, len(images))
-    pose = np.asarray(initial_pose, dtype=np.float64).reshape(3, 4)
-    X0 = np.asarray(initial_points_dlt, dtype=np.float64)
-    tracks = np.asarray(initial_point_tracks, dtype=np.int64)
-    if X0.shape != (len(tracks), 3):
-        raise InvalidValue("initial_points_dlt", f"expected ({len(tracks)}, 3), got {X0.shape}")
-    if not len(tracks):
-        raise InvalidValue("initial_points_dlt", "no points to refine")
-    first = {int(t): k for t, k in zip(track_of[view == a], np.flatnonzero(view == a)) if t >= 0}
-    second = {int(t): k for t, k in zip(track_of[view == b], np.flatnonzero(view == b)) if t >= 0}
-    ka = np.array([first[int(t)] for t in tracks])
-    kb = np.array([second[int(t)] for t in tracks])
+    dlt = check_model(initial_model_dlt, "initial_model_dlt")
+    a, b = check_pair(initial_pair, len(dlt))
+    if not len(dlt.points):
+        raise InvalidValue("initial_model_dlt", "no points to refine")
+    kp, views, point = dlt.observations()
+    ka, kb = np.zeros(len(dlt.points), dtype=np.int64), np.zeros(len(dlt.points), dtype=np.int64)
+    ka[point[views == a]], kb[point[views == b]] = kp[views == a], kp[views == b]
+    K, pose = dlt.K, dlt.poses[b]
     P = np.stack([projection_matrix(K[a], np.eye(3), np.zeros(3)), projection_matrix(K[b], pose[:, :3], pose[:, 3])])
-    X, history = refine_points(P, np.stack([keypoints.xy[ka], keypoints.xy[kb]]), X0, iterations=int(iterations))
-    poses = np.zeros((len(images), 3, 4))
-    poses[a] = poses_matrix(np.eye(3), np.zeros(3))
-    poses[b] = pose
-    registered = np.zeros(len(images), dtype=bool)
-    registered[[a, b]] = True
-    model = GrowingModel(poses, registered, X, tracks, np.ones(len(keypoints), dtype=bool))
-    cameras, cloud, _ = drawn(images, K, keypoints, model, track_of)
+    X, history = refine_points(P, np.stack([dlt.keypoints.xy[ka], dlt.keypoints.xy[kb]]), dlt.points,
+                               iterations=int(iterations))
+    refined = GrowingModel.of(dlt)
+    refined.points = X
+    model = refreeze(refined, dlt.track_of, dlt)
     cost = Curve(np.arange(len(history), dtype=np.float64), history, title="Non-linear triangulation",
                  xlabel="iteration", ylabel="RMS reprojection error (px)", labels=("RMS",))
-    return InitialModel(poses, registered, X, tracks, cameras, cloud, cost, float(history[0]), float(history[-1]),
-                        len(X))
+    return InitialModel(model, model.cameras(image="images"), model.point_cloud(), cost, float(history[0]),
+                        float(history[-1]), len(X))
 
 
 # ----------------------------------------------------------------------------------------------------
@@ -525,12 +516,7 @@ def refine_initial_points(images: ImageSet, keypoints: Points2D, track_of: np.nd
 class IncrementalModel:
     """Result of :func:`reconstruct_incrementally`."""
 
-    poses: np.ndarray
-    registered: np.ndarray
-    points: np.ndarray
-    point_tracks: np.ndarray
-    observed: np.ndarray
-    model_track_of: np.ndarray
+    model: SparseModel
     cameras: Cameras
     points3d: PointCloud
     observations: Points2D
@@ -553,9 +539,7 @@ class IncrementalModel:
     ba_never_raised: bool = metric("no bundle adjustment raised the RMS error")
 
 
-def reconstruct_incrementally(images: ImageSet, keypoints: Points2D, track_of: np.ndarray, K: np.ndarray,
-                              initial_pair: np.ndarray, initial_poses: np.ndarray, initial_registered: np.ndarray,
-                              initial_points: np.ndarray, initial_point_tracks: np.ndarray,
+def reconstruct_incrementally(initial_model: SparseModel, initial_pair: np.ndarray,
                               descriptors: np.ndarray | None = None, *,
                               pnp_threshold_px: Annotated[float, Range(0.5, 50.0)] = 4.0,
                               min_correspondences: Annotated[int, Range(6, 10000)] = 20,
@@ -623,41 +607,36 @@ def reconstruct_incrementally(images: ImageSet, keypoints: Points2D, track_of: n
             here skip the ratio test, and on the 12-view benchmark orbit 0.6-0.7 let in
             observations that raised the rotation error, 0.5 did not).
 
-    Returns the model (``poses``, ``registered``, ``points``, ``point_tracks``, ``observed`` and
-    ``model_track_of``: the tracks after continuation, completion and merging, which ``point_tracks``
-    refer to; ``track_of`` stays ``build_tracks``'), ``cameras``, ``points3d``, ``observations`` and
-    ``registration_errors`` (per registered image: the linear and non-linear PnP RMS). Warns with
-    each image that could not be registered and why. Corresponds to ``pycolmap.incremental_mapping``.
+    Returns ``model``, the grown :class:`~lab.data.reconstruction.SparseModel` (its ``track_of``:
+    the tracks after continuation, completion and merging; the state's ``track_of`` stays
+    ``build_tracks``'), ``cameras``, ``points3d``, ``observations`` and ``registration_errors`` (per
+    registered image: the linear and non-linear PnP RMS). Warns with each image that could not be
+    registered and why. Corresponds to ``pycolmap.incremental_mapping``.
 
     Reference: Schönberger and Frahm, CVPR 2016, sections 3-4; H&Z chapters 7 and 12; Triggs et al. (2000).
     """
-    images = check_images(images)
-    keypoints = check_keypoints(keypoints, len(images))
-    tracks = check_track_of(track_of, keypoints).copy()  # becomes model_track_of: continued, completed, merged
-    K = check_intrinsics(K, images)
-    unit = unit_descriptors_of(descriptors, keypoints)
-    trees = keypoint_trees(keypoints, len(images)) if complete_tracks else {}
-    sizes = np.array([[image.width, image.height] for image in images.images], dtype=np.float64)
-    anchor, _ = check_pair(initial_pair, len(images))
-    model = model_from(initial_poses, initial_registered, initial_points, initial_point_tracks, len(images), keypoints)
+    start = check_model(initial_model, "initial_model")
+    keypoints, tracks = start.keypoints, start.track_of.copy()  # the tracks grow: continued, completed, merged
+    anchor, _ = check_pair(initial_pair, len(start))
     loop = Incremental(
-        model, K, keypoints, tracks, unit, images.names, sizes, anchor,
-        Registration(pnp_threshold_px, min_correspondences),
+        GrowingModel.of(start), start.K, keypoints, tracks, unit_descriptors_of(descriptors, keypoints), start.names,
+        start.sizes.astype(np.float64), anchor, Registration(pnp_threshold_px, min_correspondences),
         Triangulation(min_angle_deg, max_error_px, 2 if complete_tracks or not ignore_two_view_tracks else 3),
         Adjustment(ba_loss, ba_iterations, ba_growth),
-        TrackGrowth(complete_tracks, ignore_two_view_tracks, complete_max_error_px, max_descriptor_distance), trees)
+        TrackGrowth(complete_tracks, ignore_two_view_tracks, complete_max_error_px, max_descriptor_distance),
+        keypoint_trees(keypoints, len(start)) if complete_tracks else {})
 
     def preview() -> dict[str, Any]:
-        cameras, cloud, _ = drawn(images, K, keypoints, model, tracks)
-        return {"cameras": cameras, "points3d": cloud}
+        now = refreeze(loop.model, tracks, start)
+        return {"cameras": now.cameras(image="images"), "points3d": now.point_cloud()}
 
     yield from loop.run(rng, preview)
-    cameras, cloud, observations = drawn(images, K, keypoints, model, tracks)
-    _, _, point = model.observations(keypoints, tracks)
+    model = refreeze(loop.model, tracks, start)
+    _, _, point = model.observations()
     counts = np.bincount(point, minlength=len(model.points)) if len(point) else np.zeros(0)
     return IncrementalModel(
-        model.poses, model.registered, model.points, model.point_tracks, model.observed, tracks, cameras, cloud,
-        observations, loop.registration_chart(), loop.warnings(), registered_images=int(model.registered.sum()),
+        model, model.cameras(image="images"), model.point_cloud(), model.observation_pixels(image="images"),
+        loop.registration_chart(), loop.warnings(), registered_images=int(model.registered.sum()),
         points_total=len(model.points), mean_track_length=float(counts.mean()) if len(counts) else 0.0,
         observations_continued=loop.continued, observations_completed=loop.completed, tracks_merged=loop.merged,
         pnp_rms_linear_px=float(np.mean(loop.linear_rms)) if loop.linear_rms else 0.0,
@@ -675,9 +654,7 @@ def reconstruct_incrementally(images: ImageSet, keypoints: Points2D, track_of: n
 class FilteredModel:
     """Result of :func:`filter_points`."""
 
-    filtered_points: np.ndarray
-    filtered_point_tracks: np.ndarray
-    filtered_observed: np.ndarray
+    filtered_model: SparseModel
     points3d: PointCloud
     observations: Points2D
     removed_observations: int = metric("observations removed (reprojection error too large)")
@@ -685,10 +662,7 @@ class FilteredModel:
     points_total: int = metric("points kept")
 
 
-def filter_points(images: ImageSet, keypoints: Points2D, track_of: np.ndarray, K: np.ndarray, poses: np.ndarray,
-                  registered: np.ndarray, points: np.ndarray, point_tracks: np.ndarray, observed: np.ndarray,
-                  model_track_of: np.ndarray | None = None, *,
-                  max_error_px: Annotated[float, Range(0.1, 50.0)] = 1.0,
+def filter_points(model: SparseModel, *, max_error_px: Annotated[float, Range(0.1, 50.0)] = 1.0,
                   min_angle_deg: Annotated[float, Range(0.0, 30.0)] = 1.5) -> FilteredModel:
     """Drop observations whose reprojection error exceeds ``max_error_px``, then points left with fewer
     than two observations or whose largest triangulation angle is below ``min_angle_deg``.
@@ -701,39 +675,32 @@ def filter_points(images: ImageSet, keypoints: Points2D, track_of: np.ndarray, K
         max_error_px: largest reprojection error of an observation kept, pixels.
         min_angle_deg: smallest largest-angle between two rays of a point kept, degrees.
 
-    ``model_track_of`` (the tracks after :func:`reconstruct_incrementally` continued, completed and
-    merged them) replaces ``track_of`` when present.
-
-    Returns ``filtered_points``, ``filtered_point_tracks`` and ``filtered_observed`` (the
-    observations still used). Corresponds to COLMAP's ``FilterPoints`` (max reprojection error,
-    min triangulation angle).
+    Returns ``filtered_model``: the model without those observations and points. Corresponds to
+    COLMAP's ``FilterPoints`` (max reprojection error, min triangulation angle).
 
     Reference: Schönberger and Frahm (2016), section 4.5 (filtering).
     """
-    images = check_images(images)
-    keypoints = check_keypoints(keypoints, len(images))
-    track_of = model_tracks(track_of, model_track_of, keypoints)
-    K = check_intrinsics(K, images)
-    model = model_from(poses, registered, points, point_tracks, len(images), keypoints, observed)
-    kp, views, point = model.observations(keypoints, track_of)
-    errors = observation_errors(model, K, keypoints, kp, views, point)
+    model = check_model(model, "model")
+    keypoints, track_of, K = model.keypoints, model.track_of, model.K
+    kept = GrowingModel.of(model)
+    kp, views, point = kept.observations(keypoints, track_of)
+    errors = observation_errors(kept, K, keypoints, kp, views, point)
     bad = errors > max_error_px
-    model.observed[kp[bad]] = False
+    kept.observed[kp[bad]] = False
     views, point = views[~bad], point[~bad]
-    counts = np.bincount(point, minlength=len(model.points))
-    centers = -np.einsum("vji,vj->vi", model.poses[:, :, :3], model.poses[:, :, 3])
-    mask = np.zeros((len(images), len(model.points)), dtype=bool)
+    counts = np.bincount(point, minlength=len(kept.points))
+    centers = -np.einsum("vji,vj->vi", kept.poses[:, :, :3], kept.poses[:, :, 3])
+    mask = np.zeros((len(model), len(kept.points)), dtype=bool)
     mask[views, point] = True
-    angles = ray_angles_deg(centers, model.points, mask) if len(model.points) else np.zeros(0)
+    angles = ray_angles_deg(centers, kept.points, mask) if len(kept.points) else np.zeros(0)
     keep = (counts >= 2) & (angles >= min_angle_deg)
-    before = len(model.points)
-    model.points, model.point_tracks = model.points[keep], model.point_tracks[keep]
-    if not len(model.points):
+    kept.points, kept.point_tracks = kept.points[keep], kept.point_tracks[keep]
+    if not len(kept.points):
         raise StepFailed("filter_points", f"no point has two observations within {max_error_px:g} px and an angle "
                                           f"of {min_angle_deg:g} degrees; loosen the limits")
-    _, cloud, observations = drawn(images, K, keypoints, model, track_of)
-    return FilteredModel(model.points, model.point_tracks, model.observed, cloud, observations, int(bad.sum()),
-                         before - int(keep.sum()), len(model.points))
+    filtered = refreeze(kept, track_of, model)
+    return FilteredModel(filtered, filtered.point_cloud(), filtered.observation_pixels(image="images"),
+                         int(bad.sum()), len(model.points) - int(keep.sum()), len(filtered.points))
 
 
 # ----------------------------------------------------------------------------------------------------
@@ -743,10 +710,7 @@ def filter_points(images: ImageSet, keypoints: Points2D, track_of: np.ndarray, K
 class AdjustedModel:
     """Result of :func:`bundle_adjust_all`."""
 
-    adjusted_poses: np.ndarray
-    adjusted_K: np.ndarray
-    adjusted_points: np.ndarray
-    point_errors: np.ndarray
+    adjusted_model: SparseModel
     cameras: Cameras
     points3d: PointCloud
     observations: Points2D
@@ -761,10 +725,7 @@ class AdjustedModel:
     reprojection_mean_px: float = metric("mean reprojection error over all observations", unit="px")
 
 
-def bundle_adjust_all(images: ImageSet, keypoints: Points2D, track_of: np.ndarray, K: np.ndarray,
-                      initial_pair: np.ndarray, poses: np.ndarray, registered: np.ndarray, filtered_points: np.ndarray,
-                      filtered_point_tracks: np.ndarray, filtered_observed: np.ndarray,
-                      model_track_of: np.ndarray | None = None, *, loss: Loss = "huber",
+def bundle_adjust_all(filtered_model: SparseModel, initial_pair: np.ndarray, *, loss: Loss = "huber",
                       f_scale: Annotated[float, Range(0.01, 100.0)] = 1.0, refine_intrinsics: bool = False,
                       max_iterations: Annotated[int, Range(1, 500)] = 50,
                       ) -> Generator[Progress, None, AdjustedModel]:
@@ -776,7 +737,6 @@ def bundle_adjust_all(images: ImageSet, keypoints: Points2D, track_of: np.ndarra
     scale ``f_scale`` px) (:func:`lab.geometry.bundle_adjustment.bundle_adjust`). The first initial
     view is held fixed and one translation entry fixes the scale (the gauge). The result is kept
     only if the RMS error falls (never a worse model). Yields the RMS at every iteration.
-    ``model_track_of`` (the incremental step's tracks) replaces ``track_of`` when present.
 
     Args:
         loss: robust loss ("linear" is plain least squares).
@@ -784,21 +744,17 @@ def bundle_adjust_all(images: ImageSet, keypoints: Points2D, track_of: np.ndarra
         refine_intrinsics: also refine fx, fy, cx, cy (one K when all views share it).
         max_iterations: most trust-region iterations.
 
-    Returns ``adjusted_poses``, ``adjusted_K``, ``adjusted_points``, each point's mean reprojection
-    error ``point_errors``, ``cameras`` tinted by their mean error (green 0 px to red 2 px),
-    ``points3d``, ``observations`` and ``ba_cost`` (RMS per iteration). Corresponds to
-    ``pycolmap.bundle_adjustment`` (Ceres).
+    Returns ``adjusted_model`` (its ``errors``: each point's mean reprojection error), ``cameras``
+    tinted by their mean error (green 0 px to red 2 px), ``points3d``, ``observations`` and
+    ``ba_cost`` (RMS per iteration). Corresponds to ``pycolmap.bundle_adjustment`` (Ceres).
 
     Reference: Triggs, McLauchlan, Hartley and Fitzgibbon, "Bundle adjustment - a modern synthesis"
     (2000); H&Z appendix A6.3; Schönberger and Frahm (2016), section 4.5.
     """
-    images = check_images(images)
-    keypoints = check_keypoints(keypoints, len(images))
-    track_of = model_tracks(track_of, model_track_of, keypoints)
-    K = check_intrinsics(K, images)
-    anchor, _ = check_pair(initial_pair, len(images))
-    model = model_from(poses, registered, filtered_points, filtered_point_tracks, len(images), keypoints,
-                       filtered_observed)
+    filtered = check_model(filtered_model, "filtered_model")
+    keypoints, track_of, K = filtered.keypoints, filtered.track_of, filtered.K
+    anchor, _ = check_pair(initial_pair, len(filtered))
+    model = GrowingModel.of(filtered)
     if not model.registered[anchor]:
         anchor = int(np.flatnonzero(model.registered)[0])
     adjusting = bundle(model, K, keypoints, track_of, anchor, loss=loss, f_scale=f_scale,
@@ -815,15 +771,14 @@ def bundle_adjust_all(images: ImageSet, keypoints: Points2D, track_of: np.ndarra
     kp, views, point = model.observations(keypoints, track_of)
     errors = observation_errors(model, K_out, keypoints, kp, views, point)
     counts = np.bincount(point, minlength=len(model.points))
-    point_errors = np.bincount(point, weights=errors, minlength=len(model.points)) / np.maximum(counts, 1)
     per_camera = np.array([errors[views == v].mean() if np.any(views == v) else 0.0
                            for v in np.flatnonzero(model.registered)])
-    _, cloud, observations = drawn(images, K_out, keypoints, model, track_of)
-    cameras = registered_cameras(images, K_out, model.poses, model.registered, colors=error_colors(per_camera, 2.0))
+    adjusted = refreeze(model, track_of, filtered, K_out)
     history = np.asarray(result.cost_history, dtype=np.float64)
     cost = Curve(np.arange(len(history), dtype=np.float64), history, title="Bundle adjustment", xlabel="iteration",
                  ylabel="RMS reprojection error (px)", labels=("RMS",))
-    return AdjustedModel(model.poses, K_out, model.points, point_errors, cameras, cloud, observations, cost,
+    return AdjustedModel(adjusted, adjusted.cameras(image="images", colors=error_colors(per_camera, 2.0)),
+                         adjusted.point_cloud(), adjusted.observation_pixels(image="images"), cost,
                          result.rms_before, result.rms_after, int(result.iterations), bool(result.improved),
                          int(model.registered.sum()), len(model.points), float(counts.mean()),
                          float(errors.mean()) if len(errors) else 0.0)

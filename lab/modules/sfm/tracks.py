@@ -16,7 +16,7 @@ from typing import Any
 import numpy as np
 
 from lab.core import Points2D
-from lab.modules.sfm._checks import check_descriptors, check_track_of, keypoint_views
+from lab.modules.sfm._checks import check_descriptors, keypoint_views
 from lab.modules.sfm.model import GrowingModel, observation_errors, project
 
 #: Per image, a k-d tree over its keypoints and their global indices (with a trailing -1 for "no neighbour").
@@ -141,13 +141,6 @@ def pair_observations(keypoints: Points2D, track_of: np.ndarray, a: int, b: int)
     in_b = np.flatnonzero((view == b) & (track_of >= 0))
     common, ia, ib = np.intersect1d(track_of[in_a], track_of[in_b], return_indices=True)
     return common, in_a[ia], in_b[ib]
-
-
-def model_tracks(track_of: Any, model_track_of: Any, keypoints: Points2D) -> np.ndarray:
-    """The incremental model's tracks when given, else ``build_tracks``' (both checked)."""
-    if model_track_of is None:
-        return check_track_of(track_of, keypoints)
-    return check_track_of(model_track_of, keypoints, "model_track_of")
 
 
 def keypoint_trees(keypoints: Points2D, views: int) -> KeypointTrees:

@@ -30,9 +30,11 @@ State names (float64 unless said):
     poses_linear   (V, 3, 4)     [R | t] of each camera from the linear PnP
     poses          (V, 3, 4)     refined by non-linear PnP;  cameras: Cameras (drawn)
     points_linear  (N, 3)        linear triangulation from ``poses``
-    points         (N, 3)        refined points;  cloud: PointCloud (drawn)
+    model          SparseModel   the scene: ``poses`` and the refined points, the observations as
+                                 tracks (:func:`~lab.modules.sfm_basics.steps.scene_model`);
+                                 cloud: PointCloud (drawn)
     sparsity       (2M, 6V + 3N) bool, the Jacobian's pattern
-    ba_poses, ba_points, ba_cameras, ba_cloud, ba_cost   after bundle adjustment
+    adjusted_model SparseModel   after bundle adjustment; ba_cameras, ba_cloud, ba_cost (drawn)
 
 Conventions (DESIGN.md section 3): OpenCV cameras, ``X_c = R X_w + t``, pixel (0, 0) the centre of
 the top-left pixel. Reference: Hartley & Zisserman, Multiple View Geometry (2nd ed.), sections 7.1
@@ -50,7 +52,8 @@ from lab.modules.sfm_basics.evaluate import (evaluate_bundle, evaluate_points, e
                                              evaluate_poses_linear)
 from lab.modules.sfm_basics.steps import (CAMERA_PARAMS, BundleAdjusted, RefinedPoints, RefinedPoses,
                                           bundle_adjust_scene, estimate_poses_linear, jacobian_sparsity,
-                                          refine_points_nonlinear, refine_poses, triangulate_points_linear)
+                                          refine_points_nonlinear, refine_poses, scene_model,
+                                          triangulate_points_linear)
 
 PIPELINE = Pipeline.build(
     name="sfm_basics",
@@ -66,5 +69,5 @@ PIPELINE = Pipeline.build(
 )
 
 __all__ = ["PIPELINE", "synthetic", "estimate_poses_linear", "refine_poses", "RefinedPoses", "triangulate_points_linear",
-           "refine_points_nonlinear", "RefinedPoints", "jacobian_sparsity", "bundle_adjust_scene", "BundleAdjusted",
-           "CAMERA_PARAMS"]
+           "refine_points_nonlinear", "RefinedPoints", "scene_model", "jacobian_sparsity", "bundle_adjust_scene",
+           "BundleAdjusted", "CAMERA_PARAMS"]

@@ -44,12 +44,13 @@ def evaluate_points_linear(state: dict[str, Any], truth: dict[str, Any]) -> dict
 
 def evaluate_points(state: dict[str, Any], truth: dict[str, Any]) -> dict[str, float]:
     """RMS distance (m) of the refined points from the true points."""
-    return _point_error(state["points"], truth, "point_error_m")
+    return _point_error(state["model"].points, truth, "point_error_m")
 
 
 def evaluate_bundle(state: dict[str, Any], truth: dict[str, Any]) -> dict[str, float]:
     """Rotation and centre errors of the adjusted cameras (the first is held, so the frame is the world's
     up to a small scale drift); RMS distance of the adjusted points from the truth."""
-    metrics = _pose_errors(state["ba_poses"], truth, "ba_")
-    metrics.update(_point_error(state["ba_points"], truth, "ba_point_error_m"))
+    adjusted = state["adjusted_model"]
+    metrics = _pose_errors(adjusted.poses, truth, "ba_")
+    metrics.update(_point_error(adjusted.points, truth, "ba_point_error_m"))
     return metrics

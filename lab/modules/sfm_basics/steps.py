@@ -2,12 +2,14 @@
 
 from __future__ import annotations
 
+from dataclasses import replace
 from typing import Annotated, Any, Literal
 
 import numpy as np
 
 from lab.core import Cameras, Curve, InvalidControl, InvalidValue, PointCloud, Points2D, Range, metric
 from lab.core.step import step_result
+from lab.data.reconstruction import SparseModel
 from lab.geometry.bundle_adjustment import LOSSES, bundle_adjust, bundle_sparsity
 from lab.geometry.camera import as_intrinsics
 from lab.geometry.pnp import MIN_CORRESPONDENCES, pnp_dlt, refine_pnp
@@ -44,6 +46,34 @@ def _rms(errors: np.ndarray) -> float:
 def _cameras(poses: np.ndarray, K: np.ndarray, image_size: Any) -> Cameras:
     width, height = (int(v) for v in np.asarray(image_size).ravel()[:2])
     return Cameras(np.broadcast_to(K, (len(poses), 3, 3)).copy(), poses[:, :, :3], poses[:, :, 3], width, height)
+
+
+#: The colour of a point of the scene, which has no photos: 0.7 grey, as the SfM module's uncoloured points.
+GREY = 178
+
+
+def _point_errors(errors: np.ndarray, observations: Points2D, count: int) -> np.ndarray:
+    """Mean of each point's finite observation errors ``(N,)`` (0 for a point without any)."""
+    assert observations.ids is not None
+    finite = np.isfinite(errors)
+    counts = np.bincount(observations.ids[finite], minlength=count)
+    sums = np.bincount(observations.ids[finite], weights=errors[finite], minlength=count)
+    return np.where(counts > 0, sums / np.maximum(counts, 1), 0.0)
+
+
+def scene_model(poses: np.ndarray, points: np.ndarray, observations: Points2D, K: np.ndarray,
+                image_size: Any) -> SparseModel:
+    """The scene as a :class:`SparseModel`: every camera registered, each observation a keypoint whose track
+    is its point (``ids``), each point's error its mean reprojection error."""
+    assert observations.ids is not None
+    views, count = len(poses), len(points)
+    errors, _ = _reprojection(poses, points, observations, K)
+    return SparseModel(K=np.broadcast_to(K, (views, 3, 3)), poses=poses, registered=np.ones(views, dtype=bool),
+                       names=tuple(f"view {v}" for v in range(views)),
+                       sizes=np.tile(np.asarray(image_size).ravel()[:2], (views, 1)), keypoints=observations,
+                       track_of=observations.ids, observed=np.ones(len(observations), dtype=bool), points=points,
+                       point_tracks=np.arange(count), colors=np.full((count, 3), GREY),
+                       errors=_point_errors(errors, observations, count))
 
 
 
@@ -176,25 +206,30 @@ def triangulate_points_linear(observations: Points2D, poses: np.ndarray,
 
 @step_result
 class RefinedPoints:
-    """:func:`refine_points_nonlinear`' result: ``points`` ``(N, 3)``, the ``cloud`` drawn, the stage's errors."""
+    """:func:`refine_points_nonlinear`' result: the ``model`` (the cameras and the refined points), the
+    ``cloud`` drawn, the stage's errors."""
 
-    points: np.ndarray
+    model: SparseModel
     cloud: PointCloud
     rms_linear_px: float = metric("RMS reprojection error of the linear points", unit="px")
     rms_refined_px: float = metric("RMS reprojection error of the refined points", unit="px")
     points_behind_linear: int = metric("observations of a linear point that lie behind their camera")
 
 
-def refine_points_nonlinear(points_linear: np.ndarray, observations: Points2D, poses: np.ndarray, K: np.ndarray, *,
+def refine_points_nonlinear(points_linear: np.ndarray, observations: Points2D, poses: np.ndarray, K: np.ndarray,
+                            image_size: np.ndarray, *,
                             iterations: Annotated[int, Range(1, 100)] = 10) -> RefinedPoints:
     """Non-linear triangulation: each point moved to minimize its reprojection error, cameras fixed.
 
     Levenberg-Marquardt on every point's ``3 x 3`` normal equations at once
     (:func:`lab.geometry.triangulation.refine_points`); a point whose error does not fall stays.
+    The result is the scene's ``model`` (:func:`scene_model`: the cameras ``poses``, the refined
+    points, the observations as tracks), the start of bundle adjustment.
 
     Args:
         points_linear: ``(N, 3)`` starting points.
         observations, poses, K: as in :func:`triangulate_points_linear`.
+        image_size: ``(2,)`` width and height, for the model's cameras.
         iterations: most iterations.
 
     Reference: Hartley & Zisserman (2nd ed.), sections 12.5 and A6.2.
@@ -208,8 +243,9 @@ def refine_points_nonlinear(points_linear: np.ndarray, observations: Points2D, p
     X, _ = refine_points(projection_matrix(K, P[:, :, :3], P[:, :, 3]), x, X0, mask, iterations=int(iterations))
     errors_linear, depths = _reprojection(P, X0, observations, K)
     errors_refined, _ = _reprojection(P, X, observations, K)
-    return RefinedPoints(points=X, cloud=PointCloud(X), rms_linear_px=_rms(errors_linear),
-                         rms_refined_px=_rms(errors_refined), points_behind_linear=int(np.sum(~(depths > 0))))
+    return RefinedPoints(model=scene_model(P, X, observations, K, image_size), cloud=PointCloud(X),
+                         rms_linear_px=_rms(errors_linear), rms_refined_px=_rms(errors_refined),
+                         points_behind_linear=int(np.sum(~(depths > 0))))
 
 
 # ----------------------------------------------------------------------------------------------------
@@ -241,10 +277,9 @@ def jacobian_sparsity(camera_indices: np.ndarray, point_indices: np.ndarray, num
 
 @step_result
 class BundleAdjusted:
-    """:func:`bundle_adjust_scene`' result: poses and points, drawn cameras and cloud, the cost per iteration."""
+    """:func:`bundle_adjust_scene`' result: the adjusted model, drawn cameras and cloud, the cost per iteration."""
 
-    ba_poses: np.ndarray
-    ba_points: np.ndarray
+    adjusted_model: SparseModel
     ba_cameras: Cameras
     ba_cloud: PointCloud
     ba_cost: Curve
@@ -256,8 +291,7 @@ class BundleAdjusted:
     ba_improved: bool = metric("whether the solver lowered the error (else the input is kept)")
 
 
-def bundle_adjust_scene(poses: np.ndarray, points: np.ndarray, observations: Points2D, K: np.ndarray,
-                        sparsity: np.ndarray, image_size: np.ndarray, *,
+def bundle_adjust_scene(model: SparseModel, sparsity: np.ndarray, *,
                         loss: Literal["linear", "huber", "soft_l1", "cauchy", "arctan"] = "huber",
                         f_scale: Annotated[float, Range(0.01, 100.0)] = 1.0,
                         max_iterations: Annotated[int, Range(1, 200)] = 30) -> BundleAdjusted:
@@ -266,39 +300,42 @@ def bundle_adjust_scene(poses: np.ndarray, points: np.ndarray, observations: Poi
     Minimizes ``sum_i rho(|pi(K (R_c X_p + t_c)) - x_i|^2)`` over every camera but the first (held:
     it fixes the gauge's rotation and translation) and every point with
     :func:`lab.geometry.bundle_adjustment.bundle_adjust` with ``jacobian="2-point"`` and the state's
-    pattern (``scipy.optimize.least_squares(method="trf", jac="2-point", jac_sparsity=...)``). SciPy groups
-    columns that share no row of the pattern and perturbs each group at once, and takes every entry
-    outside the pattern as zero: a pattern that misses entries leaves those parameters without
+    pattern (``scipy.optimize.least_squares(method="trf", jac="2-point", jac_sparsity=...)``). SciPy
+    groups columns that share no row of the pattern and perturbs each group at once, and takes every
+    entry outside the pattern as zero: a pattern that misses entries leaves those parameters without
     derivatives, one with extra entries costs evaluations (the metrics ``sparsity_missing`` and
     ``sparsity_extra`` count both against :func:`lab.geometry.bundle_adjustment.bundle_sparsity`).
     The result is kept only when the RMS error falls.
 
     Args:
-        poses: ``(V, 3, 4)``; points: ``(N, 3)``; observations, K: as above.
+        model: the scene (:func:`refine_points_nonlinear`): cameras sharing one K, points, and the
+            observations, in the order of the pattern's rows.
         sparsity: ``(2 M, 6 V + 3 N)`` bool, from :func:`jacobian_sparsity`.
-        image_size: ``(2,)``, for the drawn cameras.
         loss, f_scale: robust loss and its scale (px).
         max_iterations: most residual evaluations of the solver (``max_nfev``; about one per iteration).
+
+    Returns ``adjusted_model`` (the model with the adjusted cameras and points) and what is drawn.
 
     Reference: Triggs et al. (1999); H&Z (2nd ed.), appendix A6.3; SciPy cookbook "Large-scale bundle
     adjustment in scipy".
     """
-    observations = check_observations(observations)
-    K = as_intrinsics(K)
-    P = check_poses(poses, "poses")
-    V = len(P)
-    N = point_count(observations)
-    X = check_points(points, "points", N)
-    stacked(observations, V, N)  # checks view indices
+    if not isinstance(model, SparseModel):
+        raise InvalidValue("model", f"expected a SparseModel, got {type(model).__name__}")
+    if not np.all(model.K == model.K[0]):
+        raise InvalidValue("model", "bundle_adjust_scene adjusts cameras that share one K")
     if loss not in LOSSES:
         raise InvalidControl("loss", f"unknown loss {loss!r}; losses are {list(LOSSES)}")
-    M = len(observations)
+    K, P, X = model.K[0], model.poses, model.points
+    V, N = len(P), len(X)
+    observed = model.observation_pixels()
+    assert observed.view is not None and observed.ids is not None
+    M = len(observed)
     pattern = np.asarray(sparsity)
     shape = (2 * M, CAMERA_PARAMS * V + 3 * N)
     if pattern.shape != shape:
-        raise InvalidValue("sparsity", f"expected shape {shape} (2 rows per observation, 6 columns per camera and 3 "
-                                       f"per point), got {pattern.shape}")
-    cams, pts, obs = observations.view.astype(np.int64), observations.ids.astype(np.int64), observations.xy
+        raise InvalidValue("sparsity", f"expected shape {shape} (2 rows per observation, 6 columns per camera "
+                                       f"and 3 per point), got {pattern.shape}")
+    cams, pts, obs = observed.view, observed.ids, observed.xy
     needed = bundle_sparsity(cams, pts, V, N, camera_params=CAMERA_PARAMS).toarray().astype(bool)
     marked = pattern != 0
     missing, extra = int(np.sum(needed & ~marked)), int(np.sum(marked & ~needed))
@@ -307,10 +344,11 @@ def bundle_adjust_scene(poses: np.ndarray, points: np.ndarray, observations: Poi
                            jacobian="2-point", sparsity=marked)
     out = _as_poses(result.R, result.t)
     Xp, history = result.points, result.cost_history
-    rms_before, rms_after, evaluations, improved = result.rms_before, result.rms_after, result.iterations, result.improved
+    errors, _ = _reprojection(out, Xp, observed, K)
+    adjusted = replace(model, poses=out, points=Xp, errors=_point_errors(errors, observed, N))
     cost = Curve(np.arange(len(history)), np.array(history), title="Bundle adjustment", xlabel="iteration",
                  ylabel="RMS reprojection error (px)")
-    return BundleAdjusted(ba_poses=out, ba_points=Xp.copy(), ba_cameras=_cameras(out, K, image_size),
-                          ba_cloud=PointCloud(Xp.copy()), ba_cost=cost, ba_rms_before_px=rms_before,
-                          ba_rms_px=float(rms_after), ba_iterations=evaluations, ba_improved=improved,
-                          sparsity_missing=missing, sparsity_extra=extra)
+    return BundleAdjusted(adjusted_model=adjusted, ba_cameras=_cameras(out, K, model.sizes[0]),
+                          ba_cloud=PointCloud(Xp.copy()), ba_cost=cost, ba_rms_before_px=result.rms_before,
+                          ba_rms_px=float(result.rms_after), ba_iterations=result.iterations,
+                          ba_improved=result.improved, sparsity_missing=missing, sparsity_extra=extra)

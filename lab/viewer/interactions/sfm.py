@@ -3,25 +3,33 @@
 * :class:`TrackExplorer` - pick a 3D point (by index, or by a click ray: the point nearest to it)
   and see its track: a ray from every camera that observes it, and a table of its observations
   (image, observed pixel, reprojected pixel, error).
-* the same panel draws the point cloud coloured by each point's mean reprojection error (green 0 px
-  to red at the scale chosen), next to the photo-coloured cloud the generic drawing shows; the
-  cameras of the final step are already tinted by their mean error (``Cameras.colors``).
+* the same panel draws the point cloud coloured by each point's mean reprojection error (the model's
+  ``errors``, green 0 px to red at the scale chosen), next to the photo-coloured cloud the generic
+  drawing shows; the cameras of the final step are already tinted by their mean error
+  (``Cameras.colors``).
 
-Cameras appearing as they register and bundle adjustment's cost falling come from the generic
-drawing of the incremental step's progress snapshots (``Progress.values``: cameras and points).
-The math is in pure functions (:func:`latest_model`, :func:`track_observations`,
-:func:`nearest_point_to_ray`, :func:`error_colors`), tested directly.
+It reads the most refined :class:`~lab.data.reconstruction.SparseModel` of the session, by the
+stage names the SfM pipeline lists in its ``views`` (:data:`MODEL_VIEWS`). Cameras appearing as they
+register and bundle adjustment's cost falling come from the generic drawing of the incremental
+step's progress snapshots (``Progress.values``: cameras and points). The math is in pure functions
+(:func:`latest_model`, :func:`track_observations`, :func:`nearest_point_to_ray`), tested directly.
 """
 
 from __future__ import annotations
 
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass
-from typing import Any, Mapping
+from typing import Any
 
 import numpy as np
 
 from lab.core import InvalidValue, MissingInput
+from lab.data.reconstruction import SparseModel
+from lab.modules.sfm import error_colors
 from lab.viewer.interactions import Interaction, InteractionContext
+
+#: The model stages the interaction reads (in the SfM pipeline's ``views``), the most refined first.
+MODEL_VIEWS = ("adjusted_model", "filtered_model", "model")
 
 
 @dataclass(frozen=True)
@@ -37,39 +45,26 @@ class TrackObservation:
     center: np.ndarray
 
 
-def latest_model(state: Mapping[str, Any]) -> dict[str, np.ndarray] | None:
-    """The most refined model in the state: ``poses``, ``K``, ``points``, ``observations`` (Points2D), or None."""
-    if "observations" not in state:
-        return None
-    if "adjusted_points" in state:
-        return {"poses": state["adjusted_poses"], "K": state["adjusted_K"], "points": state["adjusted_points"],
-                "observations": state["observations"]}
-    if "filtered_points" in state:
-        return {"poses": state["poses"], "K": state["K"], "points": state["filtered_points"],
-                "observations": state["observations"]}
-    if "points" in state:
-        return {"poses": state["poses"], "K": state["K"], "points": state["points"],
-                "observations": state["observations"]}
-    return None
+def latest_model(state: Mapping[str, Any]) -> SparseModel | None:
+    """The most refined model in ``state`` (bundle-adjusted, filtered, incremental; :data:`MODEL_VIEWS`), or None."""
+    return next((state[name] for name in MODEL_VIEWS if isinstance(state.get(name), SparseModel)), None)
 
 
-def track_observations(model: Mapping[str, Any], index: int, names: tuple[str, ...] = ()) -> list[TrackObservation]:
+def track_observations(model: SparseModel, index: int) -> list[TrackObservation]:
     """Every observation of point ``index``: where it was seen, where the model reprojects it, the error."""
-    points = np.asarray(model["points"])
-    if not 0 <= int(index) < len(points):
-        raise InvalidValue("point", f"no point {index}: the model has points 0 to {len(points) - 1}")
-    observations = model["observations"]
-    rows = np.flatnonzero(observations.ids == int(index))
-    X = points[int(index)]
+    if not 0 <= int(index) < len(model.points):
+        raise InvalidValue("point", f"no point {index}: the model has points 0 to {len(model.points) - 1}")
+    kp, views, point = model.observations()
+    X = model.points[int(index)]
     out = []
-    for row in rows:
-        view = int(observations.view[row])
-        R, t = model["poses"][view, :, :3], model["poses"][view, :, 3]
-        x = model["K"][view] @ (R @ X + t)
+    for keypoint, view in zip(kp[point == int(index)], views[point == int(index)]):
+        view = int(view)
+        R, t = model.R[view], model.t[view]
+        x = model.K[view] @ (R @ X + t)
         reprojected = x[:2] / x[2]
-        observed = observations.xy[row]
-        out.append(TrackObservation(view, names[view] if view < len(names) else f"image {view}", observed.copy(),
-                                    reprojected, float(np.linalg.norm(reprojected - observed)), -R.T @ t))
+        observed = model.keypoints.xy[keypoint]
+        out.append(TrackObservation(view, model.names[view], observed.copy(), reprojected,
+                                    float(np.linalg.norm(reprojected - observed)), -R.T @ t))
     return out
 
 
@@ -89,24 +84,6 @@ def nearest_point_to_ray(points: np.ndarray, origin: Any, direction: Any) -> int
     return int(np.argmin(distance))
 
 
-def error_colors(errors: np.ndarray, scale: float) -> np.ndarray:
-    """Green (0 px) to red (``scale`` px and more), ``(N, 3)`` in [0, 1]."""
-    s = np.clip(np.asarray(errors, dtype=np.float64) / max(float(scale), 1e-9), 0.0, 1.0)[:, None]
-    return (1 - s) * np.array([0.1, 0.8, 0.2]) + s * np.array([0.9, 0.1, 0.1])
-
-
-def point_errors_of(model: Mapping[str, Any]) -> np.ndarray:
-    """Mean reprojection error of every point of ``model`` (px), from its observations."""
-    observations = model["observations"]
-    poses, K, points = model["poses"], model["K"], np.asarray(model["points"])
-    views, ids = observations.view, observations.ids
-    Xc = np.einsum("nij,nj->ni", poses[views, :, :3], points[ids]) + poses[views, :, 3]
-    uv = np.einsum("nij,nj->ni", K[views], Xc / Xc[:, 2:3])[:, :2]
-    errors = np.linalg.norm(uv - observations.xy, axis=1)
-    counts = np.bincount(ids, minlength=len(points))
-    return np.bincount(ids, weights=errors, minlength=len(points)) / np.maximum(counts, 1)
-
-
 class TrackExplorer(Interaction):
     """Colour points by reprojection error; pick a point and see its track's observations."""
 
@@ -124,8 +101,7 @@ class TrackExplorer(Interaction):
         self.by_error.on_update(ctx.guarded(lambda _: self.draw_errors()))
         self.scale.on_update(ctx.guarded(lambda _: self.draw_errors()))
         self.show.on_click(ctx.guarded(lambda _: self.pick_point(int(self.index.value))))
-        self.model: dict[str, Any] | None = None
-        self.names: tuple[str, ...] = ()
+        self.model: SparseModel | None = None
         self.seen: tuple[int, ...] = ()
         self.nodes: dict[str, Any] = {}
         self.picked: list[TrackObservation] = []
@@ -134,8 +110,8 @@ class TrackExplorer(Interaction):
     def pick_point(self, index: int) -> list[TrackObservation]:
         """Draw point ``index``'s track (a ray per observing camera) and list its observations."""
         model = self._require()
-        observations = track_observations(model, index, self.names)
-        X = np.asarray(model["points"])[int(index)]
+        observations = track_observations(model, index)
+        X = model.points[int(index)]
         starts = np.array([o.center for o in observations])
         ends = np.repeat(X[None], len(observations), axis=0)
         colors = error_colors(np.array([o.error_px for o in observations]), float(self.scale.value))
@@ -156,7 +132,7 @@ class TrackExplorer(Interaction):
     def click_ray(self, ray_origin: Any, ray_direction: Any) -> list[TrackObservation]:
         """Pick the point nearest to a click ray (``scene.on_pointer_event``) and show its track."""
         model = self._require()
-        index = nearest_point_to_ray(model["points"], ray_origin, ray_direction)
+        index = nearest_point_to_ray(model.points, ray_origin, ray_direction)
         self.index.value = index
         return self.pick_point(index)
 
@@ -165,8 +141,8 @@ class TrackExplorer(Interaction):
         if not self.by_error.value or self.model is None:
             self._drop("errors")
             return None
-        colors = error_colors(point_errors_of(self.model), float(self.scale.value))
-        points = np.asarray(self.model["points"], dtype=np.float32)
+        colors = error_colors(self.model.errors, float(self.scale.value))
+        points = self.model.points.astype(np.float32)
         self._put("errors", lambda: self.ctx.scene.add_point_cloud(
             self.ctx.node("errors"), points=points, colors=colors.astype(np.float32),
             point_size=0.006 * max(self.ctx.extent(), 1e-3)))
@@ -177,13 +153,12 @@ class TrackExplorer(Interaction):
 
     # --- the viewer's hooks -------------------------------------------------------------------------
     def update(self, state: Mapping[str, Any]) -> None:
-        model = latest_model(state)
-        key = () if model is None else tuple(id(v) for v in model.values())
+        model = latest_model(self.ctx.values(MODEL_VIEWS, state))
+        key = () if model is None else (id(model),)
         if key == self.seen:
             return
         self.seen = key
         self.model = model
-        self.names = state["images"].names if "images" in state else ()
         self._drop("track")
         self._drop("point")
         self.table.content = ""
@@ -191,8 +166,8 @@ class TrackExplorer(Interaction):
             self.info.content = "Run **reconstruct_incrementally** to explore tracks."
             self._drop("errors")
             return
-        self.info.content = f"{len(model['points'])} points: pick one to see its track."
-        self.index.max = max(len(model["points"]) - 1, 0)
+        self.info.content = f"{len(model.points)} points: pick one to see its track."
+        self.index.max = max(len(model.points) - 1, 0)
         self.draw_errors()
 
     def close(self) -> None:
@@ -201,12 +176,12 @@ class TrackExplorer(Interaction):
         super().close()
 
     # --- helpers ------------------------------------------------------------------------------------
-    def _require(self) -> dict[str, Any]:
+    def _require(self) -> SparseModel:
         if self.model is None:
-            raise MissingInput("observations", "no reconstruction yet: run reconstruct_incrementally first")
+            raise MissingInput("model", "no reconstruction yet: run reconstruct_incrementally first")
         return self.model
 
-    def _put(self, name: str, make) -> None:
+    def _put(self, name: str, make: Callable[[], Any]) -> None:
         self._drop(name)
         self.nodes[name] = make()
 
@@ -221,5 +196,5 @@ class TrackExplorer(Interaction):
 
 INTERACTIONS = [TrackExplorer]
 
-__all__ = ["INTERACTIONS", "TrackExplorer", "TrackObservation", "latest_model", "track_observations",
-           "nearest_point_to_ray", "error_colors", "point_errors_of"]
+__all__ = ["INTERACTIONS", "MODEL_VIEWS", "TrackExplorer", "TrackObservation", "latest_model", "track_observations",
+           "nearest_point_to_ray", "error_colors"]
