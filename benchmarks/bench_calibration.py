@@ -26,8 +26,9 @@ import cv2
 import numpy as np
 
 from lab.core import Points2D, open_session
-from lab.modules.calibration import (PIPELINE, estimate_distortion, estimate_extrinsics, estimate_homographies,
-                                     estimate_intrinsics, refine_calibration, refine_corners)
+from lab.modules.calibration import (PIPELINE, estimate_distortion, estimate_extrinsics,
+                                     estimate_homographies, estimate_intrinsics, refine_calibration,
+                                     refine_corners)
 
 SAMPLES = Path(__file__).resolve().parents[1] / ".." / "shared" / "data" / "opencv-samples"
 
@@ -71,9 +72,10 @@ def compare(name: str, session, repeat: int) -> dict[str, float]:
     rms_cv, K_cv, dist_cv, _, _ = calibrate_opencv(corners, board_points, size)
     t_ours = median_seconds(lambda: calibrate_ours(corners, board_points), repeat)
     t_cv = median_seconds(lambda: calibrate_opencv(corners, board_points, size), repeat)
-    row = {"rms_ours": ours.rms_px, "rms_opencv": float(rms_cv), "fx_ours": ours.fx, "fx_opencv": float(K_cv[0, 0]),
-           "fx_rel_diff": abs(ours.fx - K_cv[0, 0]) / K_cv[0, 0], "time_ours_s": t_ours, "time_opencv_s": t_cv,
-           "time_ratio": t_ours / t_cv, "iterations": ours.iterations, "views": int(len(np.unique(corners.view)))}
+    row = {"rms_ours": ours.rms_px, "rms_opencv": float(rms_cv), "fx_ours": ours.fx,
+           "fx_opencv": float(K_cv[0, 0]), "fx_rel_diff": abs(ours.fx - K_cv[0, 0]) / K_cv[0, 0],
+           "time_ours_s": t_ours, "time_opencv_s": t_cv, "time_ratio": t_ours / t_cv,
+           "iterations": ours.iterations, "views": len(np.unique(corners.view))}
     truth = session.truth
     if "K" in truth:
         K_true = truth["K"]
@@ -81,8 +83,9 @@ def compare(name: str, session, repeat: int) -> dict[str, float]:
         row["fx_error_opencv"] = abs(K_cv[0, 0] - K_true[0, 0]) / K_true[0, 0]
         row["k1_error_ours"] = abs(ours.k1 - truth["dist"][0])
         row["k1_error_opencv"] = abs(dist_cv.ravel()[0] - truth["dist"][0])
-    print(f"{name:<10} {len(np.unique(corners.view)):>5} {ours.rms_px:>10.6f} {rms_cv:>10.6f} {ours.fx:>10.3f} "
-          f"{K_cv[0, 0]:>10.3f} {1000 * t_ours:>9.2f} {1000 * t_cv:>9.2f} {t_ours / t_cv:>6.2f}")
+    print(f"{name:<10} {len(np.unique(corners.view)):>5} {ours.rms_px:>10.6f} {rms_cv:>10.6f} "
+          f"{ours.fx:>10.3f} {K_cv[0, 0]:>10.3f} {1000 * t_ours:>9.2f} {1000 * t_cv:>9.2f} "
+          f"{t_ours / t_cv:>6.2f}")
     return row
 
 
@@ -101,13 +104,14 @@ def compare_subpixel(session, repeat: int) -> dict[str, float]:
 
     def opencv():
         refined = [cv2.cornerSubPix(g, s.reshape(-1, 1, 2).copy(), (5, 5), (-1, -1), criteria)
-                   for g, s in zip(grays, starts)]
+                   for g, s in zip(grays, starts, strict=True)]
         return np.concatenate(refined).reshape(-1, 2)
 
     difference = np.abs(refine_corners(stack, start, view, window=5) - opencv()).max()
     t_ours = median_seconds(lambda: refine_corners(stack, start, view, window=5), repeat)
     t_cv = median_seconds(opencv, repeat)
-    print(f"{'subpixel':<10} {len(grays):>5} {'max |ours - cv2.cornerSubPix| = ' + f'{difference:.2e} px':>43} "
+    gap = "max |ours - cv2.cornerSubPix| = " + f"{difference:.2e} px"
+    print(f"{'subpixel':<10} {len(grays):>5} {gap:>43} "
           f"{1000 * t_ours:>9.2f} {1000 * t_cv:>9.2f} {t_ours / t_cv:>6.2f}")
     return {"subpixel_max_diff_px": float(difference), "subpixel_time_ratio": t_ours / t_cv}
 
@@ -123,7 +127,8 @@ def main() -> None:
     synthetic = open_session(PIPELINE, "synthetic", seed=0)
     result.update({f"synthetic_{k}": v for k, v in compare("synthetic", synthetic, args.repeat).items()})
     result.update(compare_subpixel(real, args.repeat))
-    print("RESULT " + json.dumps({k: (round(v, 8) if isinstance(v, float) else v) for k, v in result.items()}))
+    rounded = {k: (round(v, 8) if isinstance(v, float) else v) for k, v in result.items()}
+    print("RESULT " + json.dumps(rounded))
 
 
 if __name__ == "__main__":

@@ -11,16 +11,16 @@ import cv2
 import numpy as np
 import pytest
 
-from lab.core import (Cameras, Curve, Image, ImageSet, InvalidControl, InvalidValue, LabError, Mesh, Points2D, Progress,
-                      Segments2D, StepFailed, open_session)
-from lab.data.checkerboard import Checkerboard, synthetic
+from lab.core import (Cameras, Curve, Image, ImageSet, InvalidControl, InvalidValue, LabError, Mesh, Points2D,
+                      MissingInput, Progress, Segments2D, StepFailed, open_session)
 from lab.geometry.camera import optimal_new_camera_matrix, project_points, undistort_pixels, undistortion_map
 from lab.geometry.homogeneous import apply_homography
 from lab.geometry.rotations import matrix_to_rotvec, rotation_angle_deg, rotvec_to_matrix
+from lab.data.exports import read_opencv_calibration
 from lab.modules import get_pipeline
-from lab.modules.calibration import (PIPELINE, detect_corners, estimate_distortion, estimate_extrinsics,
-                                     estimate_homographies, estimate_intrinsics, refine_calibration, refine_corners,
-                                     undistort_image)
+from lab.modules.calibration import (PIPELINE, Checkerboard, detect_corners, estimate_distortion,
+                                     estimate_extrinsics, estimate_homographies, estimate_intrinsics,
+                                     refine_calibration, refine_corners, synthetic, undistort_image)
 
 SAMPLES = Path(__file__).resolve().parents[2] / ".." / "shared" / "data" / "opencv-samples"
 STEPS = [spec.name for spec in PIPELINE.steps]
@@ -134,7 +134,8 @@ def test_folder_names_the_photos_without_a_board(tmp_path):
     assert record.metrics == {"views_found": 4, "views_total": 5}
     np.testing.assert_array_equal(session.state["views"], [0, 1, 2, 3])
     session.run_until("refine_calibration")
-    assert session.state["per_view_rms"].categories == ("left01.jpg", "left02.jpg", "left03.jpg", "left04.jpg")
+    photos = ("left01.jpg", "left02.jpg", "left03.jpg", "left04.jpg")
+    assert session.state["per_view_rms"].categories == photos
 
 
 def test_a_students_homographies_run_through_the_rest(real_session):
@@ -177,7 +178,8 @@ def test_detect_corners_on_synthetic_matches_the_truth(synthetic_session):
 
 def test_detect_corners_orders_the_board_the_same_way_when_the_photo_is_turned(synthetic_session):
     images, board = synthetic_session.state["images"], synthetic_session.state["board"]
-    turned = ImageSet(tuple(Image(np.ascontiguousarray(im.pixels[::-1, ::-1]), im.name) for im in images.images[:3]))
+    turned = ImageSet(tuple(Image(np.ascontiguousarray(im.pixels[::-1, ::-1]), im.name)
+                            for im in images.images[:3]))
     result = detect_corners(turned, board)
     h, w = images[0].height, images[0].width
     expected = np.array([w - 1, h - 1]) - synthetic_session.truth["corners"].xy[: 3 * 54]
@@ -219,9 +221,10 @@ def test_refine_corners_matches_cv2_corner_subpix(real_session):
     start = np.concatenate(starts)
     for window in (3, 5, 8):
         ours = refine_corners(np.stack(grays), start, np.concatenate(views), window=window)
-        expected = np.concatenate([cv2.cornerSubPix(g, s.astype(np.float32).reshape(-1, 1, 2).copy(), (window, window),
-                                                    (-1, -1), SUBPIX_CRITERIA).reshape(-1, 2)
-                                   for g, s in zip(grays, starts)])
+        expected = np.concatenate([
+            cv2.cornerSubPix(g, s.astype(np.float32).reshape(-1, 1, 2).copy(), (window, window), (-1, -1),
+                             SUBPIX_CRITERIA).reshape(-1, 2)
+            for g, s in zip(grays, starts, strict=True)])
         assert np.abs(ours - expected).max() < 5e-3, window
 
 
@@ -239,7 +242,8 @@ def test_refine_corners_converges_to_a_known_corner():
     start = np.array([[21.4, 18.7], [19.5, 20.5]])
     found = refine_corners(image, start, window=5)
     np.testing.assert_allclose(found, np.repeat(corner[None], 2, axis=0), atol=0.05)  # the method's own bias
-    expected = cv2.cornerSubPix(image, start.astype(np.float32)[:, None].copy(), (5, 5), (-1, -1), SUBPIX_CRITERIA)
+    expected = cv2.cornerSubPix(image, start.astype(np.float32)[:, None].copy(), (5, 5), (-1, -1),
+                                SUBPIX_CRITERIA)
     np.testing.assert_allclose(found, expected[:, 0], atol=2e-3)
 
 
@@ -295,7 +299,8 @@ def test_normalization_makes_the_dlt_independent_of_the_image_coordinates(real_s
     for normalize, tolerance in ((True, 1e-8), (False, None)):
         H = estimate_homographies(corners, board_points, normalize=normalize)
         back = np.linalg.solve(S, estimate_homographies(moved, board_points, normalize=normalize))
-        change = np.abs(apply_homography(back[:, None], src[None]) - apply_homography(H[:, None], src[None])).max()
+        change = np.abs(apply_homography(back[:, None], src[None])
+                        - apply_homography(H[:, None], src[None])).max()
         if normalize:
             assert change < tolerance
         else:
@@ -307,7 +312,8 @@ def test_homographies_errors(exact):
     few = Points2D(corners.xy[:3], view=corners.view[:3], ids=corners.ids[:3])
     with pytest.raises(InvalidValue, match="at least 4"):
         estimate_homographies(few, board_points)
-    line = Points2D(corners.xy[:9], view=np.zeros(9, int), ids=np.arange(9))  # one row of the board: collinear
+    # one row of the board: collinear
+    line = Points2D(corners.xy[:9], view=np.zeros(9, int), ids=np.arange(9))
     with pytest.raises(InvalidValue, match="collinear"):
         estimate_homographies(line, board_points)
     with pytest.raises(InvalidValue, match="ids"):
@@ -380,7 +386,8 @@ def test_linear_distortion_known_answer(exact):
     """Zhang 3.3 is exact for a purely radial (k1, k2) lens with known K and poses."""
     truth = np.array([-0.21, 0.07, 0.0, 0.0, 0.0])
     corners = exact["corners"]
-    observed = project_points(exact["board_points"][None], exact["K"], truth, exact["R"], exact["t"]).reshape(-1, 2)
+    observed = project_points(exact["board_points"][None], exact["K"], truth, exact["R"],
+                              exact["t"]).reshape(-1, 2)
     distorted = Points2D(observed, view=corners.view, ids=corners.ids)
     dist = estimate_distortion(distorted, exact["board_points"], exact["K"], exact["R"], exact["t"])
     np.testing.assert_allclose(dist, truth, atol=1e-9)
@@ -400,7 +407,8 @@ def test_linear_distortion_on_rendered_corners_with_the_true_camera(synthetic_se
 
 def test_linear_distortion_errors(exact):
     with pytest.raises(InvalidValue, match="poses"):
-        estimate_distortion(exact["corners"], exact["board_points"], exact["K"], exact["R"][:3], exact["t"][:3])
+        estimate_distortion(exact["corners"], exact["board_points"], exact["K"], exact["R"][:3],
+                            exact["t"][:3])
     behind = -exact["t"]
     with pytest.raises(InvalidValue, match="behind"):
         estimate_distortion(exact["corners"], exact["board_points"], exact["K"], exact["R"], behind)
@@ -408,12 +416,12 @@ def test_linear_distortion_errors(exact):
 
 # --- 6. refine_calibration --------------------------------------------------------------------------
 def test_refinement_matches_opencv_on_real_photos(real_session, real_opencv):
-    rms, K_cv, dist_cv, _, _, std_cv, _, per_view_cv = real_opencv
+    _, K_cv, dist_cv, _, _, std_cv, _, per_view_cv = real_opencv
     state = real_session.state
     np.testing.assert_allclose(state["K"], K_cv, rtol=1e-4, atol=1e-3)
     np.testing.assert_allclose(state["dist"], dist_cv.ravel(), rtol=1e-3, atol=1e-5)
-    np.testing.assert_allclose(real_session.metrics["refine_calibration"]["per_view_rms_px"], per_view_cv.ravel(),
-                               rtol=1e-3)
+    np.testing.assert_allclose(real_session.metrics["refine_calibration"]["per_view_rms_px"],
+                               per_view_cv.ravel(), rtol=1e-3)
     # standard deviations: OpenCV's order is fx fy cx cy k1 k2 p1 p2 k3; ours puts the skew after cy
     ours = np.delete(state["std_intrinsics"], 4)
     np.testing.assert_allclose(ours, std_cv.ravel()[:9], rtol=1e-2)
@@ -424,8 +432,8 @@ def test_refinement_matches_opencv_on_real_photos(real_session, real_opencv):
                                              (dict(fix_tangential=True), cv2.CALIB_ZERO_TANGENT_DIST)])
 def test_refinement_controls_match_opencv_flags(real_session, controls, flags):
     state = real_session.state
-    result, _ = run(refine_calibration(state["corners"], state["board_points"], state["K_init"], state["dist_init"],
-                                       state["R_init"], state["t_init"], **controls))
+    result, _ = run(refine_calibration(state["corners"], state["board_points"], state["K_init"],
+                                       state["dist_init"], state["R_init"], state["t_init"], **controls))
     rms, K_cv, dist_cv, *_ = opencv_calibration(state["corners"], state["board_points"], flags=flags)
     assert result.rms_px == pytest.approx(rms, rel=1e-4)
     np.testing.assert_allclose(result.K, K_cv, rtol=1e-4, atol=1e-3)
@@ -438,8 +446,9 @@ def test_refinement_controls_match_opencv_flags(real_session, controls, flags):
 
 def test_refinement_with_skew_lowers_the_cost(real_session):
     state = real_session.state
-    result, _ = run(refine_calibration(state["corners"], state["board_points"], state["K_init"], state["dist_init"],
-                                       state["R_init"], state["t_init"], estimate_skew=True))
+    result, _ = run(refine_calibration(state["corners"], state["board_points"], state["K_init"],
+                                       state["dist_init"], state["R_init"], state["t_init"],
+                                       estimate_skew=True))
     assert result.rms_px <= real_session.metrics["refine_calibration"]["rms_px"] + 1e-9
     assert result.skew_std > 0 and abs(result.skew) < 3 * result.skew_std + 1.0
 
@@ -463,7 +472,8 @@ def test_refinement_yields_progress_and_a_falling_cost(real_session):
 def test_refinement_stops_at_max_iterations(real_session):
     state = real_session.state
     result, progress = run(refine_calibration(state["corners"], state["board_points"], state["K_init"],
-                                              state["dist_init"], state["R_init"], state["t_init"], max_iterations=2))
+                                              state["dist_init"], state["R_init"], state["t_init"],
+                                              max_iterations=2))
     assert len(progress) == 2 and result.iterations == 2
 
 
@@ -501,12 +511,15 @@ def test_refinement_values_for_the_viewer(real_session):
 
 
 def test_refinement_errors(exact):
-    corners = Points2D(exact["corners"].xy[:54 * 2], view=exact["corners"].view[:108], ids=exact["corners"].ids[:108])
-    few = Points2D(corners.xy[::11], view=corners.view[::11], ids=corners.ids[::11])  # 10 corners, 21 parameters
+    corners = Points2D(exact["corners"].xy[:54 * 2], view=exact["corners"].view[:108],
+                       ids=exact["corners"].ids[:108])
+    few = Points2D(corners.xy[::11], view=corners.view[::11], ids=corners.ids[::11])  # 10 corners, 21 params
     with pytest.raises(InvalidValue, match="not enough"):
-        run(refine_calibration(few, exact["board_points"], exact["K"], np.zeros(5), exact["R"][:2], exact["t"][:2]))
+        run(refine_calibration(few, exact["board_points"], exact["K"], np.zeros(5), exact["R"][:2],
+                               exact["t"][:2]))
     with pytest.raises(InvalidValue):
-        run(refine_calibration(corners, exact["board_points"], exact["K"], np.zeros(5), exact["R"], exact["t"]))
+        run(refine_calibration(corners, exact["board_points"], exact["K"], np.zeros(5), exact["R"],
+                               exact["t"]))
 
 
 def test_refinement_recovers_exact_parameters_from_a_perturbed_start(exact):
@@ -545,7 +558,7 @@ def test_undistorted_photo_has_straight_board_rows(real_session):
     corners = state["corners"].in_view(0).xy.reshape(6, 9, 2)
     mapping = undistortion_map(K, dist, (640, 480), K_new=K_new)
     straight = undistort_pixels(corners, K, dist, K_new)
-    np.testing.assert_allclose(mapping[int(round(straight[0, 0, 1])), int(round(straight[0, 0, 0]))],
+    np.testing.assert_allclose(mapping[round(straight[0, 0, 1]), round(straight[0, 0, 0])],
                                corners[0, 0], atol=1.5)
 
     def bend(rows):
@@ -570,3 +583,51 @@ def test_undistort_image_errors(real_session):
         session.run("undistort_image", {"view": -1})
     record = session.run("undistort_image", {"view": 0, "alpha": 0.5})
     assert record.status == "ok" and isinstance(session.state["undistorted"], Image)
+
+
+# --- the pipeline's declarations: exports and views -------------------------------------------------
+def test_views_and_export_reads_are_values_of_the_pipeline():
+    """Every name the viewer or an export reads is written by a step or given by every dataset."""
+    written = {name for spec in PIPELINE.steps for name in spec.writes}
+    given = {"images", "board"}  # what both datasets put in the state
+    assert set(synthetic().state) == given
+    assert PIPELINE.views <= written | given
+    export = PIPELINE.export("opencv-yaml")
+    assert set(export.reads) <= written | given and {"K", "dist"} <= set(export.reads)
+
+
+def test_opencv_yaml_export_reads_back(real_session, tmp_path):
+    state, metrics = real_session.state, real_session.metrics
+    written = PIPELINE.export("opencv-yaml").write(state, metrics, tmp_path / "calib" / "camera.yaml")
+    assert written == tmp_path / "calib" / "camera.yaml"
+    back = read_opencv_calibration(written)
+    np.testing.assert_allclose(back.K, state["K"])
+    np.testing.assert_allclose(back.dist, state["dist"])
+    assert (back.image_width, back.image_height) == (640, 480)
+    assert back.avg_reprojection_error == pytest.approx(metrics["refine_calibration"]["rms_px"])
+    storage = cv2.FileStorage(str(written), cv2.FILE_STORAGE_READ)
+    try:
+        assert storage.getNode("nframes").real() == 13
+        assert (storage.getNode("board_width").real(), storage.getNode("board_height").real()) == (9, 6)
+        assert storage.getNode("square_size").real() == pytest.approx(0.025)
+        np.testing.assert_allclose(storage.getNode("per_view_reprojection_errors").mat().ravel(),
+                                   metrics["refine_calibration"]["per_view_rms_px"])
+        extrinsics = storage.getNode("extrinsic_parameters").mat()
+        assert extrinsics.shape == (13, 6)
+        np.testing.assert_allclose(extrinsics[:, 3:], state["translations"])
+        np.testing.assert_allclose(extrinsics[:, :3], matrix_to_rotvec(state["rotations"]), atol=1e-9)
+    finally:
+        storage.release()
+
+
+def test_opencv_yaml_export_needs_a_camera(real_session, tmp_path):
+    write = PIPELINE.export("opencv-yaml").write
+    with pytest.raises(MissingInput, match="refine_calibration"):
+        write({"images": real_session.state["images"]}, {}, tmp_path / "a.yaml")
+    state = {"K": real_session.state["K"], "dist": real_session.state["dist"]}
+    with pytest.raises(InvalidValue, match="image size"):
+        write(state, {}, tmp_path / "b.yaml")
+    written = write({**state, "images": real_session.state["images"]}, {}, tmp_path / "c.yaml")
+    back = read_opencv_calibration(written)  # no refinement metrics: no RMS, still a valid file
+    assert back.avg_reprojection_error is None and (back.image_width, back.image_height) == (640, 480)
+    assert not (tmp_path / "a.yaml").exists() and not (tmp_path / "b.yaml").exists()
