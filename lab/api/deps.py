@@ -7,9 +7,9 @@ shares); ``app.state.catalog`` knows the modules, ``app.state.runs`` tracks runn
 
 from __future__ import annotations
 
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from typing import Annotated
-from collections.abc import Callable, Sequence
 
 from fastapi import Depends, Path, Request
 
@@ -28,7 +28,8 @@ class ModuleCatalog:
     loader: Callable[[str], Pipeline]
 
     def get(self, name: str) -> Pipeline:
-        """The pipeline of module ``name``: UnknownName (404) when not served, ModuleUnavailable (503) when broken."""
+        """The pipeline of module ``name``: UnknownName (404) when not served, ModuleUnavailable (503)
+        when broken."""
         if name not in self.names:
             raise UnknownName("module", f"no module {name!r}; modules are {list(self.names)}")
         try:
@@ -39,9 +40,11 @@ class ModuleCatalog:
             raise UnknownName("module", f"no module {name!r}; modules are {list(self.names)}") from None
         except Exception as exc:  # a module that fails to import must not take the API down with it
             log.exception("module %s failed to load", name)
-            raise ModuleUnavailable("module", f"module {name!r} failed to load ({type(exc).__name__}: {exc})") from None
+            raise ModuleUnavailable("module", f"module {name!r} failed to load "
+                                              f"({type(exc).__name__}: {exc})") from None
         if not isinstance(pipeline, Pipeline):
-            raise ModuleUnavailable("module", f"module {name!r} has no pipeline (got {type(pipeline).__name__})")
+            raise ModuleUnavailable("module", f"module {name!r} has no pipeline "
+                                              f"(got {type(pipeline).__name__})")
         return pipeline
 
     @classmethod
@@ -79,10 +82,12 @@ def client_address(request: Request) -> str | None:
     return request.client.host if request.client is not None else None
 
 
-def get_session(request: Request,
-                session_id: Annotated[str, Path(description="The session's id, as returned by POST /api/sessions.")]
-                ) -> Session:
-    """The live session ``session_id`` (404 ``field: session`` saying whether it expired, was deleted or never was)."""
+SessionId = Annotated[str, Path(description="The session's id, as returned by POST /api/sessions.")]
+
+
+def get_session(request: Request, session_id: SessionId) -> Session:
+    """The live session ``session_id`` (404 ``field: session`` saying whether it expired, was deleted
+    or never was)."""
     return get_store(request).get(session_id)
 
 

@@ -1,4 +1,5 @@
-"""Running steps for the API: bounded worker pools, checks before a run, the job, progress for event streams.
+"""Running steps for the API: bounded worker pools, checks before a run, the job, progress for event
+streams.
 
 A step runs through :meth:`Session.run` on a thread of one of the app's bounded :class:`RunPools`
 (never in the event loop), so ``/api/health`` stays fast, and the viewer, which shares the
@@ -17,15 +18,16 @@ from __future__ import annotations
 
 import asyncio
 import concurrent.futures
+import contextlib
 import os
 import sys
 import threading
 import time
 import weakref
 from collections import deque
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass
 from queue import Empty, SimpleQueue
-from collections.abc import Callable, Mapping
 from typing import Any, TypeVar
 
 from lab.api.errors import error_body, jsonable, log
@@ -66,7 +68,8 @@ class RunPool:
 
     def __init__(self, *, workers: int = DEFAULT_WORKERS, queue: int = DEFAULT_QUEUE) -> None:
         if workers < 1 or queue < 0:
-            raise ValueError(f"a pool needs at least 1 worker and a queue of 0 or more, got {workers}, {queue}")
+            raise ValueError("a pool needs at least 1 worker and a queue of 0 or more, "
+                             f"got {workers}, {queue}")
         self.workers = workers
         self.queue = queue
         self._jobs: SimpleQueue[Callable[[], None]] = SimpleQueue()
@@ -88,10 +91,10 @@ class RunPool:
             if self._held >= self.workers + self.queue:
                 waiting = self._held - self._running
                 wait = self._mean_seconds * (waiting + 1) / self.workers
-                raise TooManyRequests("server", f"the server's workers run {self._running} steps or dataset loads "
-                                                f"with {waiting} more waiting (at most {self.workers} at once and "
-                                                f"{self.queue} waiting); retry later",
-                                      retry_after=min(60.0, max(1.0, wait)))
+                reason = (f"the server's workers run {self._running} steps or dataset loads with {waiting} "
+                          f"more waiting (at most {self.workers} at once and {self.queue} waiting); "
+                          "retry later")
+                raise TooManyRequests("server", reason, retry_after=min(60.0, max(1.0, wait)))
             self._held += 1
             return self._held <= self.workers
 
@@ -105,7 +108,8 @@ class RunPool:
         with self._lock:  # with the lock, so that a worker about to leave sees the job
             self._jobs.put(job)
             if len(self._threads) < self.workers:
-                thread = threading.Thread(target=self._work, name=f"lab-worker-{len(self._threads)}", daemon=True)
+                thread = threading.Thread(target=self._work, name=f"lab-worker-{len(self._threads)}",
+                                          daemon=True)
                 self._threads.append(thread)
                 thread.start()
 
@@ -163,7 +167,8 @@ def step_response(session: Session, record: RunRecord) -> dict[str, Any]:
 
 
 def record_outcome(session: Session, record: RunRecord) -> tuple[str, dict[str, Any]]:
-    """The final event for a history record: ``done`` with the run's JSON, or ``error`` with the error body."""
+    """The final event for a history record: ``done`` with the run's JSON, or ``error`` with the error
+    body."""
     if record.status == "ok":
         return "done", step_response(session, record)
     kind = "cancelled" if record.status == "cancelled" else "step_failed"
@@ -251,11 +256,13 @@ class RunMonitor:
         """Start an API run; SessionBusy when a run (API or viewer) is already in progress."""
         session = self._session()
         with self._lock:
-            busy = (session.running if session is not None else None) or (self.job.label if self.job else None)
+            running = session.running if session is not None else None
+            busy = running or (self.job.label if self.job else None)
             if busy is not None:
                 raise SessionBusy("session", f"step {busy!r} is running in this session; wait for it or "
                                              "POST .../cancel")
-            if self.active and self.external and session is not None:  # a viewer run nobody watched to its end
+            # a viewer run nobody watched to its end
+            if self.active and self.external and session is not None:
                 self._close_external_locked(session, force=True)
             self._start_locked()
             self.external = False
@@ -266,7 +273,8 @@ class RunMonitor:
         data = jsonable({"step": step, **progress.to_json()})
         session = self._session()
         with self._lock:
-            if self.active and self.external and session is not None and len(session.history) > self._history_mark:
+            if (self.active and self.external and session is not None
+                    and len(session.history) > self._history_mark):
                 self._close_external_locked(session, force=True)  # an earlier viewer run nobody watched
             if not self.active:  # a run started elsewhere (the viewer): follow it too
                 self._start_locked()
@@ -288,7 +296,8 @@ class RunMonitor:
         self.job = None
 
     def poll(self, after: int) -> tuple[int, list[tuple[int, str, dict[str, Any]]], bool]:
-        """``(run_id, events after seq `after`, active)``; also notices the end of a run started elsewhere."""
+        """``(run_id, events after seq `after`, active)``; also notices the end of a run started
+        elsewhere."""
         self._check_external()
         with self._lock:
             return self.run_id, [e for e in self._events if e[0] > after], self.active
@@ -344,7 +353,8 @@ def check_idle(session: Session, monitor: RunMonitor) -> None:
     """SessionBusy (409) when a step runs in the session or an API run is about to start."""
     busy = monitor.busy_with()
     if busy is not None:
-        raise SessionBusy("session", f"step {busy!r} is running in this session; wait for it or POST .../cancel")
+        raise SessionBusy("session", f"step {busy!r} is running in this session; wait for it or "
+                                     "POST .../cancel")
 
 
 def plan_step(session: Session, spec: StepSpec, controls: dict[str, Any] | None) -> dict[str, Any]:
@@ -371,8 +381,8 @@ def plan_until(session: Session, target: StepSpec, params: Mapping[str, Any] | N
         if name not in order:
             raise InvalidControl(name, f"module {pipeline.name!r} has no step {name!r}; steps are {order}")
         if name not in upstream:
-            raise InvalidControl(name, f"step {name!r} is not one {target.name!r} needs (it comes after it or on "
-                                       f"another branch of the data flow) and would not run; "
+            raise InvalidControl(name, f"step {name!r} is not one {target.name!r} needs (it comes after it "
+                                       f"or on another branch of the data flow) and would not run; "
                                        f"{target.name!r} needs {list(upstream)}")
         if controls is not None and not isinstance(controls, dict):
             raise InvalidControl(name, "controls must be a JSON object")
@@ -409,10 +419,11 @@ class RunJob:
         self.finished = threading.Event()
         self.result: dict[str, Any] | None = None
         self.error: BaseException | None = None
-        self._done_callbacks: list[Callable[[], None]] = []
+        self._done_callbacks: list[Callable[[], object]] = []
 
-    def add_done_callback(self, callback: Callable[[], None]) -> None:
-        """Call ``callback`` (from the worker thread) when the run is over; add before starting."""
+    def add_done_callback(self, callback: Callable[[], object]) -> None:
+        """Call ``callback`` (from the worker thread) when the run is over; add before starting. What
+        it returns is ignored."""
         self._done_callbacks.append(callback)
 
     def _watch_cancel(self, step: str, progress: Progress) -> None:
@@ -435,10 +446,11 @@ class RunJob:
             if self.until:
                 plan = plan_until(session, session.pipeline.step(self.step), self.params)
                 records = session.run_plan(plan, self.params, on_start=self._start,
-                                           should_stop=self.cancel_requested.is_set, on_progress=self._watch_cancel)
-                self.result = {"session": session.id, "plan": plan.to_json(), "ran": [r.step for r in records],
-                               "records": [r.to_json() for r in records], "steps": session.step_status(),
-                               "version": session.version}
+                                           should_stop=self.cancel_requested.is_set,
+                                           on_progress=self._watch_cancel)
+                self.result = {"session": session.id, "plan": plan.to_json(),
+                               "ran": [r.step for r in records], "records": [r.to_json() for r in records],
+                               "steps": session.step_status(), "version": session.version}
             else:
                 self.result = step_response(session, self._run_one(self.step, self.params))
             self.store.check_memory()
@@ -453,8 +465,6 @@ class RunJob:
         finally:
             self.finished.set()
             for callback in self._done_callbacks:
-                try:
+                with contextlib.suppress(RuntimeError):  # the waiting event loop is gone (shutting down)
                     callback()
-                except RuntimeError:  # the waiting event loop is gone (server shutting down)
-                    pass
 

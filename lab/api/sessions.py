@@ -48,8 +48,9 @@ def retry_later_responses(texts: dict[int, str]) -> dict[int | str, dict[str, An
 
 
 StepName = Annotated[str, Path(description="Step name, as listed by GET /api/modules/{module}.")]
-Wait = Annotated[bool, Query(description="`true`: answer when the run is over (200 with its record). `false`: "
-                                         "answer 202 at once; follow GET /api/sessions/{id}/events.")]
+Wait = Annotated[bool, Query(description="`true`: answer when the run is over (200 with its record). "
+                                         "`false`: answer 202 at once; follow "
+                                         "GET /api/sessions/{id}/events.")]
 
 
 class SessionCreate(BaseModel):
@@ -57,14 +58,15 @@ class SessionCreate(BaseModel):
 
     model_config = ConfigDict(extra="forbid", json_schema_extra={"examples": [
         {"module": "calibration", "dataset": "synthetic", "options": {"num_views": 12}, "seed": 0},
-        {"module": "calibration", "dataset": "folder", "options": {"path": "/data/my_photos", "columns": 9, "rows": 6}},
+        {"module": "calibration", "dataset": "folder",
+         "options": {"path": "/data/my_photos", "columns": 9, "rows": 6}},
     ]})
 
     module: str = Field(description="Module name (GET /api/modules).")
     dataset: str | None = Field(None, description="Dataset name; default: the module's first dataset.")
     options: dict[str, Any] = Field(default_factory=dict,
-                                    description="Dataset options (their JSON Schema is in GET /api/modules/{module}); "
-                                                "folder datasets take `path`.")
+                                    description="Dataset options (their JSON Schema is in "
+                                                "GET /api/modules/{module}); folder datasets take `path`.")
     seed: int = Field(0, ge=0, le=2**32 - 1, strict=True,  # a JSON integer: not false, "3" or 1.5
                       description="Seeds every step's random generator (recorded, replayable).")
 
@@ -126,18 +128,18 @@ def _load_session(pipeline: Pipeline, spec: DatasetSpec, options: dict[str, Any]
 
 _CREATE_RESPONSES = retry_later_responses({
     413: "The dataset alone needs more memory than the server allows for all sessions.",
-    429: "This client address already holds its share of live sessions, or the worker pool and its queue are "
-         "full; see Retry-After.",
+    429: "This client address already holds its share of live sessions, or the worker pool and its queue "
+         "are full; see Retry-After.",
     503: "The server holds its most live sessions, or their memory is at the cap (none in use is evicted); "
          "see Retry-After."})
 
 
 @router.post("", status_code=201, summary="Create a session", responses=_CREATE_RESPONSES,
-             description="Load a dataset of a module into a new session and return its summary (201; the id is "
-                         "`id`). 404 for an unknown module or dataset, 422 for a bad option, 413 when the dataset "
-                         "is too large; when there is no room, 429 (this client holds its share of sessions, or "
-                         "the workers are saturated) or 503 (the server is full), with Retry-After. No session in "
-                         "use is ever evicted to make room.")
+             description="Load a dataset of a module into a new session and return its summary (201; the "
+                         "id is `id`). 404 for an unknown module or dataset, 422 for a bad option, 413 when "
+                         "the dataset is too large; when there is no room, 429 (this client holds its share "
+                         "of sessions, or the workers are saturated) or 503 (the server is full), with "
+                         "Retry-After. No session in use is ever evicted to make room.")
 async def create_session(request: Request, body: SessionCreate, catalog: CatalogDep, store: StoreDep,
                          pools: PoolsDep, client: ClientDep) -> LabJSONResponse:
     pipeline = catalog.get(body.module)
@@ -155,25 +157,27 @@ async def create_session(request: Request, body: SessionCreate, catalog: Catalog
 
 
 @router.get("/{session_id}", summary="Read a session",
-            description="State value names and types, the status of every step (`done`, `ready`, `blocked`), the "
-                        "history (step, params, seed, seconds, metrics, status), current metrics and warnings, and "
-                        "the running step's latest progress.")
+            description="State value names and types, the status of every step (`done`, `ready`, "
+                        "`blocked`), the history (step, params, seed, seconds, metrics, status), current "
+                        "metrics and warnings, and the running step's latest progress.")
 def read_session(request: Request, session: SessionDep) -> LabJSONResponse:
     return LabJSONResponse(session_json(request, session))
 
 
 @router.delete("/{session_id}", status_code=204, summary="Delete a session",
                description="Forget the session (a running step is cancelled).")
-def delete_session(store: StoreDep, session_id: Annotated[str, Path(description="The session's id.")]) -> Response:
+def delete_session(store: StoreDep,
+                   session_id: Annotated[str, Path(description="The session's id.")]) -> Response:
     store.delete(session_id)
     return Response(status_code=204)
 
 
 @router.post("/{session_id}/reset", summary="Reset a session",
-             description="Forget the outputs of every step, or of `step` and everything downstream of it. The "
-                         "dataset's values stay. 409 while a step runs.")
+             description="Forget the outputs of every step, or of `step` and everything downstream of it. "
+                         "The dataset's values stay. 409 while a step runs.")
 def reset_session(request: Request, session: SessionDep,
-                  step: Annotated[str | None, Query(description="Reset only this step and what follows from it.")] = None
+                  step: Annotated[str | None,
+                                  Query(description="Reset only this step and what follows from it.")] = None
                   ) -> LabJSONResponse:
     if step is not None:
         session.pipeline.step(step)
@@ -193,8 +197,9 @@ async def _launch(job: RunJob, wait: bool, pool: RunPool) -> LabJSONResponse:
     if not wait:
         pool.start(job.execute)
         sid = job.session.id
-        return LabJSONResponse({"session": sid, "step": job.step, "status": "running" if at_once else "queued",
-                                "until": job.until, "events": f"/api/sessions/{sid}/events",
+        return LabJSONResponse({"session": sid, "step": job.step,
+                                "status": "running" if at_once else "queued", "until": job.until,
+                                "events": f"/api/sessions/{sid}/events",
                                 "cancel": f"/api/sessions/{sid}/cancel"}, status_code=202)
     loop = asyncio.get_running_loop()
     finished = asyncio.Event()
@@ -209,22 +214,24 @@ async def _launch(job: RunJob, wait: bool, pool: RunPool) -> LabJSONResponse:
 _RUN_RESPONSES: dict[int | str, dict[str, Any]] = {
     202: {"description": "Started in the background, or queued for a worker (`?wait=false`; `status` says "
                  "which); follow the `events` link."},
-    **retry_later_responses({404: "Unknown session or step.",
-                       409: "A value the step reads does not exist yet, another step is running, or the run was "
-                            "cancelled.",
-                       422: "A control is unknown, out of range or wrongly typed, or the step failed on its input.",
-                       429: "The worker pool runs its most steps and its queue is full; see Retry-After."}),
+    **retry_later_responses({
+        404: "Unknown session or step.",
+        409: "A value the step reads does not exist yet, another step is running, or the run was cancelled.",
+        422: "A control is unknown, out of range or wrongly typed, or the step failed on its input.",
+        429: "The worker pool runs its most steps and its queue is full; see Retry-After."}),
 }
 
 
 @router.post("/{session_id}/steps/{step}", summary="Run a step", responses=_RUN_RESPONSES,
              description="Run one step with the controls given in the JSON body (omitted ones take their "
-                         "defaults; their schema is in GET /api/modules/{module}). Its outputs replace the old ones "
-                         "and invalidate the steps downstream. Answers the run record: params, seed, seconds, "
-                         "metrics (with evaluations against the truth when the dataset has one), warnings.")
+                         "defaults; their schema is in GET /api/modules/{module}). Its outputs replace the "
+                         "old ones and invalidate the steps downstream. Answers the run record: params, "
+                         "seed, seconds, metrics (with evaluations against the truth when the dataset has "
+                         "one), warnings.")
 async def run_step(request: Request, session: SessionDep, store: StoreDep, pools: PoolsDep, step: StepName,
-                   controls: Annotated[dict[str, Any] | None, Body(description="Controls of the step by name.",
-                                                                    examples=[{"sigma": 0.2}])] = None,
+                   controls: Annotated[dict[str, Any] | None,
+                                       Body(description="Controls of the step by name.",
+                                            examples=[{"sigma": 0.2}])] = None,
                    wait: Wait = True) -> LabJSONResponse:
     spec = session.pipeline.step(step)
     monitor: RunMonitor = request.app.state.runs.monitor(session)
@@ -234,14 +241,15 @@ async def run_step(request: Request, session: SessionDep, store: StoreDep, pools
                          pools.for_step(session, spec.name))
 
 
-@router.post("/{session_id}/run-until/{step}", summary="Run every step up to one", responses=_RUN_RESPONSES,
-             description="Run the plan of `step`: the steps it needs by data flow whose outputs are missing or "
-                         "stale, in pipeline order, then `step` itself (a step that reads only the dataset runs "
-                         "alone). The JSON body maps step names to their controls "
-                         "(`{\"detect_corners\": {\"window\": 7}}`); all of them are checked before anything runs, "
-                         "and a done step given other controls than it ran with is stale and runs again with what "
-                         "reads its outputs. Answers the plan (`plan`: steps and why each runs), the steps that "
-                         "`ran`, and their run records.")
+@router.post("/{session_id}/run-until/{step}", summary="Run every step up to one",
+             responses=_RUN_RESPONSES,
+             description="Run the plan of `step`: the steps it needs by data flow whose outputs are missing "
+                         "or stale, in pipeline order, then `step` itself (a step that reads only the "
+                         "dataset runs alone). The JSON body maps step names to their controls "
+                         "(`{\"detect_corners\": {\"window\": 7}}`); all of them are checked before "
+                         "anything runs, and a done step given other controls than it ran with is stale and "
+                         "runs again with what reads its outputs. Answers the plan (`plan`: steps and why "
+                         "each runs), the steps that `ran`, and their run records.")
 async def run_until(request: Request, session: SessionDep, store: StoreDep, pools: PoolsDep, step: StepName,
                     params: Annotated[dict[str, dict[str, Any] | None] | None,
                                       Body(description="Controls per step name.")] = None,
@@ -250,15 +258,15 @@ async def run_until(request: Request, session: SessionDep, store: StoreDep, pool
     monitor: RunMonitor = request.app.state.runs.monitor(session)
     check_idle(session, monitor)
     plan_until(session, spec, params)
-    return await _launch(RunJob(session, store, monitor, step=spec.name, params=params, until=True), wait,
-                         pools.heavy)
+    return await _launch(RunJob(session, store, monitor, step=spec.name, params=params, until=True),
+                         wait, pools.heavy)
 
 
 @router.post("/{session_id}/cancel", status_code=202, summary="Cancel the running step",
-             description="Ask the running step to stop: a long (generator) step stops at its next progress "
-                         "snapshot and its run ends with an `error` event of kind `cancelled`; a run-until stops "
-                         "before its next step. The state stays as it was before the cancelled step. 409 when "
-                         "nothing runs.")
+             description="Ask the running step to stop: a long (generator) step stops at its next "
+                         "progress snapshot and its run ends with an `error` event of kind `cancelled`; a "
+                         "run-until stops before its next step. The state stays as it was before the "
+                         "cancelled step. 409 when nothing runs.")
 def cancel_run(request: Request, session: SessionDep) -> LabJSONResponse:
     monitor: RunMonitor = request.app.state.runs.monitor(session)
     job = monitor.job
@@ -270,7 +278,8 @@ def cancel_run(request: Request, session: SessionDep) -> LabJSONResponse:
     session.cancel()
     step = running or (job.current if job else None)
     return LabJSONResponse({"session": session.id, "cancelling": step,
-                            "long": bool(step) and session.pipeline.step(step).is_generator}, status_code=202)
+                            "long": bool(step and session.pipeline.step(step).is_generator)},
+                           status_code=202)
 
 
 def _event(name: str, data: dict[str, Any], event_id: str | None = None) -> ServerSentEvent:
@@ -279,10 +288,11 @@ def _event(name: str, data: dict[str, Any], event_id: str | None = None) -> Serv
 
 @router.get("/{session_id}/events", response_class=EventSourceResponse, summary="Stream a run's progress",
             description="Server-sent events of the latest run in the session: `progress` events "
-                        "(`{step, iteration, total, loss, message}`) while it runs, then one `done` event (the same "
-                        "JSON as the synchronous answer) or `error` event (`{error, field, reason, step}`), and the "
-                        "stream ends. A client that connects after the run is over gets its retained events again; "
-                        "when nothing has run, one `idle` event (or the outcome of the last recorded run).")
+                        "(`{step, iteration, total, loss, message}`) while it runs, then one `done` event "
+                        "(the same JSON as the synchronous answer) or `error` event (`{error, field, reason, "
+                        "step}`), and the stream ends. A client that connects after the run is over gets its "
+                        "retained events again; when nothing has run, one `idle` event (or the outcome of "
+                        "the last recorded run).")
 async def stream_events(request: Request, session: SessionDep) -> AsyncIterable[ServerSentEvent]:
     monitor: RunMonitor = request.app.state.runs.monitor(session)
     after = 0
