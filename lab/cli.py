@@ -11,15 +11,16 @@
 The CLI is one more front end on :mod:`lab.core` (docs/design.md): it opens a session with
 :func:`lab.open_session`'s dataset rules, runs the core's plan (:meth:`lab.core.Session.plan`,
 :meth:`lab.core.Session.run_plan`; controls from ``--set``, checked by the step's own schema before
-anything runs) and writes values with :mod:`lab.data.exports` or the pipeline's own exports. A problem with what the user asked for (:class:`lab.core.errors.LabError`,
-a bad ``--set``, an unknown name, a missing folder, a step that fails on this input) prints one
-line ``error: <field>: <reason>`` on stderr and exits with code 2, never a traceback.
+anything runs) and writes values with :mod:`lab.data.exports` or the pipeline's own exports. A
+problem with what the user asked for (:class:`lab.core.errors.LabError`, a bad ``--set``, an
+unknown name, a missing folder, a step that fails on this input) prints one line
+``error: <field>: <reason>`` on stderr and exits with code 2, never a traceback.
 """
 
 import contextlib
 import json
 import sys
-from collections.abc import Iterator
+from collections.abc import Iterator, Sequence
 from pathlib import Path
 from typing import TYPE_CHECKING, Annotated, Any
 
@@ -29,18 +30,31 @@ from typer.core import TyperGroup
 from lab.core.errors import InvalidControl, InvalidValue, LabError
 
 if TYPE_CHECKING:  # the CLI imports the core lazily: `vision-lab --help` stays fast
+    from rich.progress import Progress as ProgressBar
+    from rich.progress import ProgressColumn, TaskID
+    # typer (>= 0.26) vendors click in a private package: its exception classes are named here for
+    # the type checker only; at run time they are found through the public typer.BadParameter.
+    from typer._click.exceptions import ClickException, UsageError
+
     from lab.core.pipeline import Pipeline, Plan, RunRecord, Session
-    from lab.core.step import Progress
+    from lab.core.step import Control, Progress
 
 #: Exit code for every problem with what the user asked for (as click uses for usage errors).
 EXIT_USAGE = 2
 
-#: Formats ``export`` writes any state value in (the codecs'); a module adds its own (``Pipeline.exports``).
+#: Formats ``export`` writes any state value in (the codecs'); a module adds its own
+#: (``Pipeline.exports``).
 EXPORT_FORMATS = ("json", "npy", "png", "ply")
 
-# Click's exception classes, whether typer vendors click (>= 0.26) or uses the package.
-_CLICK_EXCEPTION = next(c for c in typer.BadParameter.__mro__ if c.__name__ == "ClickException")
-_USAGE_ERROR = next(c for c in typer.BadParameter.__mro__ if c.__name__ == "UsageError")
+
+def _click_class(name: str) -> type:
+    """Click's exception class ``name``, a base of typer.BadParameter, whether typer vendors click
+    (>= 0.26) or uses the package."""
+    return next(c for c in typer.BadParameter.__mro__ if c.__name__ == name)
+
+
+_CLICK_EXCEPTION: "type[ClickException]" = _click_class("ClickException")
+_USAGE_ERROR: "type[UsageError]" = _click_class("UsageError")
 
 
 # --- the pipeline registry (tests inject their own pipelines here) ------------------------------
@@ -51,7 +65,7 @@ def module_names() -> tuple[str, ...]:
     return tuple(MODULES)
 
 
-def lookup_pipeline(name: str):
+def lookup_pipeline(name: str) -> "Pipeline":
     """The pipeline of module ``name``; raises :class:`UnknownName` (field ``module``)."""
     from lab.modules import get_pipeline
 
@@ -62,11 +76,16 @@ def lookup_pipeline(name: str):
 class LabGroup(TyperGroup):
     """The command group: turns click's usage errors into the same one-line form as LabError."""
 
-    def main(self, args=None, prog_name=None, complete_var=None, standalone_mode=True, **extra):
+    def main(self, args: Sequence[str] | None = None, prog_name: str | None = None,
+             complete_var: str | None = None, standalone_mode: bool = True,
+             windows_expand_args: bool = True, **extra: Any) -> Any:
+        """Click's ``main``; standalone, every usage error becomes one line and its exit code."""
         if not standalone_mode:
-            return super().main(args, prog_name, complete_var, standalone_mode=False, **extra)
+            return super().main(args, prog_name, complete_var, standalone_mode=False,
+                                windows_expand_args=windows_expand_args, **extra)
         try:
-            code = super().main(args, prog_name, complete_var, standalone_mode=False, **extra)
+            code = super().main(args, prog_name, complete_var, standalone_mode=False,
+                                windows_expand_args=windows_expand_args, **extra)
         except _CLICK_EXCEPTION as exc:
             if type(exc).__name__ == "NoArgsIsHelpError":
                 exc.show()  # the help text
@@ -79,16 +98,17 @@ class LabGroup(TyperGroup):
         sys.exit(code if isinstance(code, int) else 0)
 
 
-def _click_error_parts(exc: Exception) -> tuple[str, str]:
+def _click_error_parts(exc: "ClickException") -> tuple[str, str]:
     """(field, reason) of a click usage error: the option at fault when click names one."""
-    param = getattr(exc, "param", None)
+    param = getattr(exc, "param", None)  # BadParameter and its kin
+    option_name = getattr(exc, "option_name", None)  # NoSuchOption, BadOptionUsage
     message = exc.format_message()
     if param is not None and type(exc).__name__ == "BadParameter":
         opts = getattr(param, "opts", None) or [param.human_readable_name]
         message = exc.message
         field = opts[0]
-    elif getattr(exc, "option_name", None):
-        field = exc.option_name
+    elif option_name:
+        field = option_name
     else:
         field = "usage"
     ctx = getattr(exc, "ctx", None)
@@ -128,7 +148,7 @@ def parse_options(items: list[str] | None) -> dict[str, str]:
     return options
 
 
-def parse_settings(pipeline, items: list[str] | None) -> dict[str, dict[str, Any]]:
+def parse_settings(pipeline: "Pipeline", items: list[str] | None) -> dict[str, dict[str, Any]]:
     """``--set STEP.CONTROL=VALUE`` items as ``{step: {control: value}}``, each checked and converted.
 
     Raises :class:`InvalidControl` for bad syntax (field ``--set``) or a value the control
@@ -149,7 +169,8 @@ def parse_settings(pipeline, items: list[str] | None) -> dict[str, dict[str, Any
 
 
 def _plan(session: "Session", targets: list[str] | None, params: dict[str, dict[str, Any]]) -> "Plan":
-    """The core's plan of ``targets`` (every step when None) on a fresh session, with ``--set`` controls."""
+    """The core's plan of ``targets`` (every step when None) on a fresh session, with ``--set``
+    controls."""
     return session.plan(targets, params)
 
 
@@ -169,8 +190,8 @@ class _ProgressDisplay:
     def __init__(self, pipeline: "Pipeline", *, enabled: bool) -> None:
         self.pipeline = pipeline
         self.enabled = enabled
-        self._bar: Any = None
-        self._task: Any = None
+        self._bar: ProgressBar | None = None
+        self._task: TaskID | None = None
 
     def start(self, step: str) -> None:
         self.close()
@@ -180,16 +201,17 @@ class _ProgressDisplay:
         from rich.progress import (BarColumn, MofNCompleteColumn, Progress, SpinnerColumn, TextColumn,
                                    TimeElapsedColumn)
 
-        columns: list[Any] = [SpinnerColumn(), TextColumn("{task.description}")]
+        columns: list[ProgressColumn] = [SpinnerColumn(), TextColumn("{task.description}")]
         if self.pipeline.step(step).is_generator:
             columns += [BarColumn(), MofNCompleteColumn(), TextColumn("{task.fields[note]}")]
         columns.append(TimeElapsedColumn())
-        self._bar = Progress(*columns, console=Console(file=sys.stderr, force_terminal=True), transient=True)
+        self._bar = Progress(*columns, console=Console(file=sys.stderr, force_terminal=True),
+                             transient=True)
         self._bar.start()
         self._task = self._bar.add_task(step, total=None, note="")
 
     def progress(self, step: str, snapshot: "Progress") -> None:
-        if self._bar is not None:
+        if self._bar is not None and self._task is not None:  # a bar has its task
             note = f"loss {snapshot.loss:.4g}" if snapshot.loss is not None else snapshot.message
             self._bar.update(self._task, completed=snapshot.iteration, total=snapshot.total, note=note)
 
@@ -205,7 +227,7 @@ class _ProgressDisplay:
 
 
 def _open(module: str, dataset: str | None, options: list[str] | None, settings: list[str] | None,
-          seed: int):
+          seed: int) -> tuple["Pipeline", "Session", dict[str, dict[str, Any]]]:
     """Check every argument, then load the dataset: (pipeline, session, params by step)."""
     import lab
     from lab.core.pipeline import open_session
@@ -216,13 +238,16 @@ def _open(module: str, dataset: str | None, options: list[str] | None, settings:
     spec = pipeline.dataset(name)
     try:
         session = open_session(pipeline, spec.name, resolved, seed=seed)
-    except (InvalidControl, InvalidValue) as exc:  # an option's name or value: say it as the user wrote it
-        field = f"--option {exc.field.removeprefix('options.')}" if exc.field.startswith("options.") else exc.field
+    except (InvalidControl, InvalidValue) as exc:  # an option's name or value: as the user wrote it
+        field = exc.field
+        if field.startswith("options."):
+            field = f"--option {field.removeprefix('options.')}"
         raise type(exc)(field, exc.reason) from None
     except LabError:
         raise
     except Exception as exc:  # a loader failing on the user's files
-        raise InvalidValue("dataset", f"{spec.name!r} could not be loaded: {type(exc).__name__}: {exc}") from None
+        raise InvalidValue("dataset", f"{spec.name!r} could not be loaded: "
+                                      f"{type(exc).__name__}: {exc}") from None
     return pipeline, session, params
 
 
@@ -239,7 +264,7 @@ def _print_warning(step: str, text: str) -> None:
     typer.echo(f"warning: {step}: {text}".replace("\n", " "), err=True)
 
 
-def summary(module: str, dataset: str, records: list) -> dict[str, Any]:
+def summary(module: str, dataset: str, records: list["RunRecord"]) -> dict[str, Any]:
     """The JSON summary of a run: each step's seconds, metrics and warnings, and all metrics merged."""
     from lab.core.codecs import to_json
 
@@ -253,7 +278,7 @@ def summary(module: str, dataset: str, records: list) -> dict[str, Any]:
     return {"module": module, "dataset": dataset, "steps": steps, "metrics": merged}
 
 
-def _format_number(value: Any) -> str:
+def _format_number(value: object) -> str:
     if isinstance(value, bool) or value is None:
         return "-" if value is None else str(value).lower()
     if isinstance(value, float):
@@ -294,7 +319,8 @@ DatasetOpt = Annotated[str | None, typer.Option(
 OptionOpt = Annotated[list[str] | None, typer.Option(
     "--option", "-o", metavar="KEY=VALUE", help="A dataset option, e.g. num_views=10 (repeatable).")]
 SetOpt = Annotated[list[str] | None, typer.Option(
-    "--set", "-s", metavar="STEP.CONTROL=VALUE", help="A step control, e.g. detect_corners.window=7 (repeatable).")]
+    "--set", "-s", metavar="STEP.CONTROL=VALUE",
+    help="A step control, e.g. detect_corners.window=7 (repeatable).")]
 UntilOpt = Annotated[str | None, typer.Option("--until", "-u", metavar="STEP",
                                                  help="Stop after this step (default: run every step).")]
 SeedOpt = Annotated[int, typer.Option("--seed", help="Seed of every step's random generator.")]
@@ -302,14 +328,17 @@ SeedOpt = Annotated[int, typer.Option("--seed", help="Seed of every step's rando
 
 @app.command()
 def serve(
-    host: Annotated[str, typer.Option(help="Address to bind (0.0.0.0 to serve other machines).")] = "127.0.0.1",
-    port: Annotated[int, typer.Option(min=1, max=65535, help="Port of the landing page and REST API.")] = 8000,
+    host: Annotated[str, typer.Option(
+        help="Address to bind (0.0.0.0 to serve other machines).")] = "127.0.0.1",
+    port: Annotated[int, typer.Option(
+        min=1, max=65535, help="Port of the landing page and REST API.")] = 8000,
     viewer_port: Annotated[int, typer.Option(min=1, max=65535, help="Port of the 3D viewer.")] = 8080,
     data_root: Annotated[Path | None, typer.Option(
-        help="Only folders under this one may be loaded as datasets (set it when serving beyond 127.0.0.1).")] = None,
+        help="Only folders under this one may be loaded as datasets (set it when serving beyond "
+             "127.0.0.1).")] = None,
     unsafe_sandbox: Annotated[bool, typer.Option(
-        "--unsafe-sandbox", help="Grade submissions without the bubblewrap sandbox, with Python's audit hook only. "
-                                 "For trusted code only, never for a class.")] = False,
+        "--unsafe-sandbox", help="Grade submissions without the bubblewrap sandbox, with Python's audit hook "
+                                 "only. For trusted code only, never for a class.")] = False,
 ) -> None:
     """Start the landing page, the REST API and the 3D viewer (Ctrl-C stops them).
 
@@ -357,13 +386,14 @@ def modules(as_json: Annotated[bool, typer.Option("--json", help="Print one JSON
             for n, step in enumerate(pipeline.steps, 1):
                 long = " (long)" if step.is_generator else ""
                 typer.echo(f"    {n}. {step.name}{long}: {step.summary}")
-                typer.echo(f"       reads {', '.join(step.reads) or '-'}; writes {', '.join(step.writes) or '-'}")
+                reads, writes = ", ".join(step.reads) or "-", ", ".join(step.writes) or "-"
+                typer.echo(f"       reads {reads}; writes {writes}")
                 for control in step.controls:
                     typer.echo(f"       --set {step.name}.{_describe_control(control)}")
             typer.echo("")
 
 
-def _describe_control(control) -> str:
+def _describe_control(control: "Control") -> str:
     """``name=default  (kind, range)  description`` for the listing."""
     if control.required:
         text = f"{control.name}=..."
@@ -371,7 +401,7 @@ def _describe_control(control) -> str:
         default = control.default
         shown = ",".join(str(v) for v in default) if isinstance(default, tuple) else default
         text = f"{control.name}={str(shown).lower() if isinstance(shown, bool) else shown}"
-    kind = control.kind
+    kind: str = control.kind
     if control.kind == "choice":
         kind = "one of " + "|".join(str(c) for c in control.choices)
     elif control.minimum is not None and control.maximum is not None:
@@ -413,12 +443,13 @@ def run(
 @app.command()
 def export(
     module: Annotated[str, typer.Argument(help="The module, e.g. calibration.")],
-    fmt: Annotated[str, typer.Option("--format", "-f", help=f"One of {', '.join(EXPORT_FORMATS)}, or a format of "
-                                                            "the module's own (listed by 'vision-lab modules').")],
+    fmt: Annotated[str, typer.Option(
+        "--format", "-f", help=f"One of {', '.join(EXPORT_FORMATS)}, or a format of the module's own "
+                               "(listed by 'vision-lab modules').")],
     out: Annotated[Path, typer.Option("--out", help="The file to write (folders are created).")],
     what: Annotated[str | None, typer.Option(
-        "--what", "-w", help="The state value to write, e.g. K, corners, cloud (a module's format writes what "
-                             "it needs: leave it out).")] = None,
+        "--what", "-w", help="The state value to write, e.g. K, corners, cloud (a module's format writes "
+                             "what it needs: leave it out).")] = None,
     index: Annotated[int | None, typer.Option(help="One view of an image set (png, npy).")] = None,
     dataset: DatasetOpt = None,
     option: OptionOpt = None,
@@ -451,11 +482,12 @@ def _values_to_export(pipeline: "Pipeline", what: str | None, fmt: str) -> list[
             raise InvalidValue("--what", f"{fmt} writes {' and '.join(reads)} together; leave --what out")
         return reads
     if fmt not in EXPORT_FORMATS:
-        raise InvalidValue("--format", f"unknown format {fmt!r}; formats are {list(EXPORT_FORMATS)} and module "
-                                       f"{pipeline.name!r}'s own {sorted(pipeline.exports)}")
+        raise InvalidValue("--format", f"unknown format {fmt!r}; formats are {list(EXPORT_FORMATS)} and "
+                                       f"module {pipeline.name!r}'s own {sorted(pipeline.exports)}")
     if not what:
         written = sorted({name for spec in pipeline.steps for name in spec.writes})
-        raise InvalidValue("--what", f"name the value to write; the steps of {pipeline.name!r} write {written}")
+        raise InvalidValue("--what", f"name the value to write; the steps of {pipeline.name!r} write "
+                                     f"{written}")
     return [what]
 
 
