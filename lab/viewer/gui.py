@@ -103,9 +103,9 @@ def build_tab_gui(gui: Any, module_names: Sequence[str]) -> TabGui:
         run_all_button = gui.add_button("Run all", hint="run every step that is not done (missing or stale) "
                                                         "and every step that reads what those rewrite")
         auto_rerun = gui.add_checkbox(AUTO_RERUN_LABEL, True,
-                                      hint="on: Run on a step also re-runs the steps that depend on "
-                                           "it; off (for slow steps): Run runs only the step, the later ones "
-                                           "then need a run")
+                                      hint="on: Run on a step also re-runs the steps that depend on it; off "
+                                           "(for slow steps): Run runs only the step, the later ones then "
+                                           "need a run")
     progress_folder = gui.add_folder("Progress", order=4, visible=False)
     with progress_folder:
         progress_text = gui.add_markdown("")

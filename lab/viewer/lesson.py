@@ -102,8 +102,8 @@ def array_comparison(name: str, yours: Any, reference: Any, *, rows: int = TABLE
     when it is small enough (one homography of a stack), else the ``rows`` entries that differ most.
     """
     mine, theirs = np.asarray(yours), np.asarray(reference)
-    head = (f"**`{name}`** · yours: array {tuple(mine.shape)} {mine.dtype} · "
-            f"reference: array {tuple(theirs.shape)} {theirs.dtype}")
+    head = (f"**`{name}`** · yours: array {tuple(mine.shape)} {mine.dtype} · reference: array "
+            f"{tuple(theirs.shape)} {theirs.dtype}")
     if mine.shape != theirs.shape:
         return head + "\n\nThe shapes differ: your array must have the reference's shape."
     if mine.dtype.kind not in "biuf" or theirs.dtype.kind not in "biuf":
@@ -161,8 +161,8 @@ def comparison_markdown(side: SideBySide) -> str:
             parts.append(f"**`{name}`**: drawn in the **Compare** tab as `{YOURS}/{name}` and "
                          f"`{REFERENCE}/{name}`.")
         else:
-            parts.append(f"{value_summary(f'{YOURS}/{name}', yours)}  \n"
-                         f"{value_summary(f'{REFERENCE}/{name}', reference)}")
+            parts.append(f"{value_summary(f'{YOURS}/{name}', yours)}  "
+                         f"\n{value_summary(f'{REFERENCE}/{name}', reference)}")
     parts.append(printed_markdown(side.printed))
     return "\n\n".join(parts)
 
@@ -409,9 +409,8 @@ class LessonMode:
                 if folder is None:
                     continue
                 with folder:
-                    note = gui.add_markdown(f"**Your task: {task.title}** "
-                                            f"({format_number(task.points)} points)  \n"
-                                            f"`def {task.signature}`")
+                    note = gui.add_markdown(f"**Your task: {task.title}** ({format_number(task.points)} "
+                                            f"points)  \n`def {task.signature}`")
                     use_mine = gui.add_checkbox("use my code", self.use_mine.get(task.step, False),
                                                 hint="Run calls your function (in a sandbox) in place of the "
                                                      "reference's")
@@ -576,8 +575,8 @@ class LessonMode:
             self._compare_tab = self.panel.add_tab("Compare")
             with self._compare_tab:
                 self.ctx.gui.add_markdown(f"Your outputs (`{YOURS}/...`) and the reference's "
-                                          f"(`{REFERENCE}/...`) "
-                                           "on the same inputs, from **Compare with reference**.", order=-1.0)
+                                          f"(`{REFERENCE}/...`) on the same inputs, from **Compare with "
+                                          "reference**.", order=-1.0)
             self._compare_drawer = StateDrawer(Canvas(scene=self.ctx.scene, gui=self.ctx.gui,
                                                       images=self._compare_tab, plots=self._compare_tab))
         names = sorted({name.split("/", 1)[1] for name in drawn})
@@ -608,14 +607,5 @@ class LessonMode:
             code.close()
 
 
-__all__ = [
-    "NO_LESSON",
-    "LessonMode",
-    "TaskRow",
-    "array_comparison",
-    "code_status",
-    "comparison_markdown",
-    "lesson_summary",
-    "side_by_side_state",
-    "upload_text",
-]
+__all__ = ["NO_LESSON", "LessonMode", "TaskRow", "array_comparison", "code_status", "comparison_markdown",
+           "lesson_summary", "side_by_side_state", "upload_text"]

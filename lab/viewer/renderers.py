@@ -1,4 +1,5 @@
-"""One renderer per value type of :mod:`lab.core.values` (DESIGN.md section 4, "values that are drawn have a type").
+"""One renderer per value type of :mod:`lab.core.values` (DESIGN.md section 4, "values that are drawn have a
+type").
 
 A renderer draws one named state value into a :class:`Canvas`: a viser scene (3D values:
 point clouds, camera frustums carrying their image, 3D segments, meshes, Gaussian splats) and,
@@ -18,9 +19,11 @@ Pure helpers (no viser): :func:`to_rgb8`, :func:`overlay_view` and :func:`curve_
 
 from __future__ import annotations
 
+import contextlib
 import math
+from collections.abc import Callable, Iterable, Mapping
 from dataclasses import dataclass, field, replace
-from typing import Any, Callable, Iterable, Mapping
+from typing import Any
 
 import cv2
 import numpy as np
@@ -115,20 +118,23 @@ def overlay_view(image: Image, overlays: Iterable[Points2D | Segments2D] = (), *
     radius = max(2.0, min(rgb.shape[:2]) / 120.0)
     n_points = n_segments = 0
     overlays = list(overlays)
-    in_order = [o for o in overlays if isinstance(o, Points2D)] + [o for o in overlays if isinstance(o, Segments2D)]
+    in_order = [*(o for o in overlays if isinstance(o, Points2D)),
+                *(o for o in overlays if isinstance(o, Segments2D))]
     for overlay in in_order:  # segments (residuals) on top of points
         keep = _on_view(overlay, view)
         if isinstance(overlay, Points2D):
             default = POINT_COLORS[n_points % len(POINT_COLORS)]
             n_points += 1
-            for i, (x, y) in zip(np.flatnonzero(keep), fixed(overlay.xy[keep])):
-                cv2.circle(rgb, (int(x), int(y)), int(round(radius * one)), _color8(overlay.colors, i, default),
+            for i, (x, y) in zip(np.flatnonzero(keep), fixed(overlay.xy[keep]), strict=True):
+                cv2.circle(rgb, (int(x), int(y)), round(radius * one),
+                           _color8(overlay.colors, i, default),
                            1, cv2.LINE_AA, shift)
         else:
             default = SEGMENT_COLORS[n_segments % len(SEGMENT_COLORS)]
             n_segments += 1
             index = np.flatnonzero(keep)
-            for i, (x0, y0), (x1, y1) in zip(index, fixed(overlay.start[keep]), fixed(overlay.end[keep])):
+            for i, (x0, y0), (x1, y1) in zip(index, fixed(overlay.start[keep]), fixed(overlay.end[keep]),
+                                             strict=True):
                 color = _color8(overlay.colors, i, default)
                 cv2.line(rgb, (int(x0), int(y0)), (int(x1), int(y1)), color, 1, cv2.LINE_AA, shift)
                 cv2.circle(rgb, (int(x0), int(y0)), one, color, -1, cv2.LINE_AA, shift)
@@ -162,7 +168,7 @@ def curve_image(curve: Curve, *, width: int = 480, height: int = 260) -> np.ndar
     y_max += 0.08 * span
 
     def py(value: float) -> int:
-        return int(round(top + plot_h * (1.0 - (value - y_min) / (y_max - y_min))))
+        return round(top + plot_h * (1.0 - (value - y_min) / (y_max - y_min)))
 
     # axes and a few horizontal grid lines with labels
     cv2.line(img, (left, top), (left, top + plot_h), (0, 0, 0), 1)
@@ -189,8 +195,8 @@ def curve_image(curve: Curve, *, width: int = 480, height: int = 260) -> np.ndar
                 color = WORST_BAR_COLOR if (s == 0 and i == worst) else BAR_COLOR
                 if s > 0:
                     color = tuple(int(c * 0.6 + 255 * 0.4) for c in BAR_COLOR)
-                cv2.rectangle(img, (int(round(x0)), py(max(y[s, i], y_min))),
-                              (int(round(x0 + bar_w)) - 1, py(y_min)), color, -1)
+                cv2.rectangle(img, (round(x0), py(max(y[s, i], y_min))),
+                              (round(x0 + bar_w) - 1, py(y_min)), color, -1)
         mean = float(np.nanmean(y[0]))
         for xx in range(left, left + plot_w, 8):
             cv2.line(img, (xx, py(mean)), (min(xx + 4, left + plot_w), py(mean)), (120, 120, 120), 1)
@@ -212,36 +218,39 @@ def curve_image(curve: Curve, *, width: int = 480, height: int = 260) -> np.ndar
         x_max = x_min + 1.0
 
     def px(value: float) -> int:
-        return int(round(left + plot_w * (value - x_min) / (x_max - x_min)))
+        return round(left + plot_w * (value - x_min) / (x_max - x_min))
 
     palette = ((31, 119, 180), (255, 127, 14), (44, 160, 44), (214, 39, 40), (148, 103, 189))
     for s in range(len(y)):
         color = palette[s % len(palette)]
-        pts = np.array([(px(a), py(b)) for a, b in zip(x, y[s]) if np.isfinite(b)], np.int32)
+        pts = np.array([(px(a), py(b)) for a, b in zip(x, y[s], strict=True) if np.isfinite(b)], np.int32)
         if curve.kind == "line" and len(pts) > 1:
             cv2.polylines(img, [pts.reshape(-1, 1, 2)], False, color, 2, cv2.LINE_AA)
         else:
             for p in pts:
                 cv2.circle(img, (int(p[0]), int(p[1])), 3, color, -1, cv2.LINE_AA)
     for value in (x_min, x_max):
-        cv2.putText(img, f"{value:.3g}", (px(value) - 8, top + plot_h + 12), font, 0.33, (60, 60, 60), 1, cv2.LINE_AA)
+        cv2.putText(img, f"{value:.3g}", (px(value) - 8, top + plot_h + 12), font, 0.33, (60, 60, 60), 1,
+                    cv2.LINE_AA)
     if curve.xlabel:
-        cv2.putText(img, curve.xlabel[:40], (left + plot_w // 2 - 20, height - 6), font, 0.35, (60, 60, 60), 1,
+        cv2.putText(img, curve.xlabel[:40], (left + plot_w // 2 - 20, height - 6), font, 0.35, (60, 60, 60),
+                    1,
                     cv2.LINE_AA)
     return img
 
 
 def short_labels(labels: list[str], width: int = 6) -> list[str]:
     """Tick labels for bars: the common prefix dropped ("view 03" -> "03"), at most ``width`` chars."""
-    import os.path
-
-    prefix = os.path.commonprefix(labels) if len(labels) > 1 else ""
+    prefix = labels[0] if len(labels) > 1 else ""
+    for label in labels[1:]:  # the longest common prefix, character by character
+        while not label.startswith(prefix):
+            prefix = prefix[:-1]
     out = [label[len(prefix):] or label for label in labels]
     return [text if len(text) <= width else text[:width - 1] + "~" for text in out]
 
 
 # --- geometry helpers ---------------------------------------------------------------------------
-def _wxyz_from_matrix(rotation: np.ndarray) -> np.ndarray:
+def wxyz_from_matrix(rotation: np.ndarray) -> np.ndarray:
     """Unit quaternion (w, x, y, z) of a 3x3 rotation (what ``viser.transforms.SO3.from_matrix`` gives)."""
     import viser.transforms as vtf
 
@@ -352,10 +361,8 @@ class Drawn:
 
     def remove(self) -> None:
         for handle in reversed(self.handles):
-            try:
+            with contextlib.suppress(Exception):  # already gone with its parent (a removed folder / node)
                 handle.remove()
-            except Exception:  # already gone with its parent (a removed folder / node): nothing to do
-                pass
         self.handles.clear()
 
 
@@ -391,7 +398,8 @@ class PointCloudRenderer(Renderer):
     value_type = PointCloud
 
     def draw(self, canvas, name, value: PointCloud, state, order) -> Drawn:
-        colors = DEFAULT_POINT_COLOR if value.colors is None else (np.clip(value.colors, 0, 1) * 255).astype(np.uint8)
+        colors = DEFAULT_POINT_COLOR if value.colors is None else (np.clip(value.colors, 0,
+                                                                           1) * 255).astype(np.uint8)
         handle = canvas.scene.add_point_cloud(_node(name), points=value.xyz.astype(np.float32), colors=colors,
                                               point_size=0.006 * canvas.extent, point_shape="circle",
                                               precision="float32")
@@ -411,7 +419,8 @@ class CamerasRenderer(Renderer):
 
     def fingerprint(self, name, value: Cameras, state, canvas) -> tuple:
         images = state.get(value.image) if value.image else None
-        return (id(value), canvas.extent, id(images), tuple(id(o) for _, o in overlays_of(state, value.image)))
+        return (id(value), canvas.extent, id(images),
+                tuple(id(o) for _, o in overlays_of(state, value.image)))
 
     def draw(self, canvas, name, value: Cameras, state, order) -> Drawn:
         images = state.get(value.image) if value.image else None
@@ -437,11 +446,10 @@ class CamerasRenderer(Renderer):
                 f"{_node(name)}/camera_{i:03d}", fov=fov, aspect=value.width / value.height, scale=scale,
                 thickness=2.0, thickness_units="screen",
                 color=_color8(value.colors, i, DEFAULT_CAMERA_COLOR), image=picture, format="jpeg",
-                jpeg_quality=85, wxyz=_wxyz_from_matrix(rotation_cw), position=center)
+                jpeg_quality=85, wxyz=wxyz_from_matrix(rotation_cw), position=center)
             if canvas.on_view_selected is not None and value.image:
-                callback = canvas.on_view_selected
-
-                def clicked(_event, image_name=value.image, view=view):
+                def clicked(_event: Any, image_name: str = value.image, view: int = view,
+                            callback: Callable[[str, int], None] = canvas.on_view_selected) -> None:
                     callback(image_name, view)
 
                 handle.on_click(clicked)
@@ -498,7 +506,8 @@ class GaussianSplatsRenderer(Renderer):
 
     def draw(self, canvas, name, value: GaussianSplats, state, order) -> Drawn:
         handle = canvas.scene.add_gaussian_splats(
-            _node(name), centers=value.centers.astype(np.float32), covariances=value.covariances.astype(np.float32),
+            _node(name), centers=value.centers.astype(np.float32),
+            covariances=value.covariances.astype(np.float32),
             rgbs=np.clip(value.rgbs, 0, 1).astype(np.float32),
             opacities=np.clip(value.opacities, 0, 1).astype(np.float32))
         return Drawn(self.fingerprint(name, value, state, canvas), [handle])
@@ -558,7 +567,8 @@ class ImageSetRenderer(Renderer):
             with folder:
                 slider = None
                 if len(value) > 1:
-                    slider = canvas.gui.add_slider("view", min=0, max=len(value) - 1, step=1, initial_value=view,
+                    slider = canvas.gui.add_slider("view", min=0, max=len(value) - 1, step=1,
+                                                   initial_value=view,
                                                    hint=f"which view of {name} to show")
                 image = canvas.gui.add_image(overlay_view(value[view], [o for _, o in overlays], view=view,
                                                           min_side=PANEL_MIN_SIDE),
@@ -567,7 +577,8 @@ class ImageSetRenderer(Renderer):
         def show(index: int) -> None:
             index = min(max(int(index), 0), len(value) - 1)
             canvas.views[name] = index
-            image.image = overlay_view(value[index], [o for _, o in overlays], view=index, min_side=PANEL_MIN_SIDE)
+            image.image = overlay_view(value[index], [o for _, o in overlays], view=index,
+                                       min_side=PANEL_MIN_SIDE)
             image.label = caption(index)
             if slider is not None and slider.value != index:
                 slider.value = index
@@ -697,6 +708,6 @@ class StateDrawer:
         self.errors.clear()
 
 
-__all__ = ["Canvas", "Drawn", "Renderer", "RENDERERS", "OVERLAY_TYPES", "StateDrawer", "renderer_for",
-           "overlay_view", "overlays_of", "curve_image", "to_rgb8", "uplot_config", "scene_bounds",
-           "scene_extent", "viewpoint", "SCENE_ROOT"]
+__all__ = ["OVERLAY_TYPES", "RENDERERS", "SCENE_ROOT", "Canvas", "Drawn", "Renderer", "StateDrawer",
+           "curve_image", "overlay_view", "overlays_of", "renderer_for", "scene_bounds", "scene_extent",
+           "to_rgb8", "uplot_config", "viewpoint", "wxyz_from_matrix"]

@@ -12,12 +12,13 @@ from lab.data.two_view import correspondences
 from lab.modules.epipolar import PIPELINE, epipolar_lines, essential_candidates, recover_pose
 from lab.viewer.app import ClientView, ModuleCatalog
 from lab.viewer.interactions import EXPLORE_ROOT, interactions_for
+from lab.geometry.camera_views import (camera_centre, click_to_pixel, epipolar_plane_corners, image_placement,
+                                       lift_pixels, pixel_ray, project_point)
+from lab.geometry.two_view import fundamental_from_pose
+from lab.viewer.drawing import draw_overlays, match_pair_image
 from lab.viewer.interactions.epipolar import (INTERACTIONS, EpipolarExplorer, MatchColours, PoseCandidates,
-                                              analyse_candidates, camera_centre, candidate_layout, candidate_points,
-                                              check_pixel, click_to_pixel, epipolar_plane_corners,
-                                              explorer_overlays, fundamental_from_pose, image_placement, lift_pixels,
-                                              match_pair_image, move, pick, pixel_ray, project_point, scene_depths,
-                                              two_view_geometry)
+                                              analyse_candidates, candidate_layout, candidate_points, check_pixel,
+                                              explorer_overlays, move, pick, scene_depths, two_view_geometry)
 
 #: A small synthetic pair: 120 points, 0.5 px noise, 30 % outliers, 320 x 240 images.
 SMALL = {"num_points": 120, "width": 320, "height": 240, "cx": 159.5, "cy": 119.5, "fx": 300.0, "fy": 300.0,
@@ -463,7 +464,6 @@ def test_closing_removes_every_node(view, store):
 
 def test_draw_overlays_draws_thick_lines_and_circles_at_the_right_pixels():
     from lab.core import Image, Points2D, Segments2D
-    from lab.viewer.interactions.epipolar import draw_overlays
 
     image = Image(np.full((100, 200), 0.5, np.float32))
     line = Segments2D(np.array([[10.0, 50.0]]), np.array([[190.0, 50.0]]), colors=np.array([[1.0, 1.0, 0.0]]))

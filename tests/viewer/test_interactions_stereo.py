@@ -15,10 +15,10 @@ import numpy as np
 import pytest
 
 from lab.core import Image, InvalidControl, InvalidValue, open_session
+from lab.geometry.camera_views import lift_pixels
 from lab.modules.stereo import COSTS, PIPELINE, box_mean, colorize_disparity, depth_from_disparity, error_map
 from lab.viewer.app import ClientView, ModuleCatalog
 from lab.viewer.interactions import EXPLORE_ROOT, interactions_for
-from lab.viewer.interactions.epipolar import lift_pixels
 from lab.viewer.interactions.stereo import (INTERACTIONS, BaselineExplorer, BaselineRecord, CostCurveExplorer,
                                             DisparityMaps, check_pick, click_to_left_pixel, cost_plot,
                                             depth_range, depth_uncertainty_curve, disparity_stage,

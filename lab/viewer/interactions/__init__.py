@@ -32,8 +32,8 @@ import importlib
 import importlib.util
 import logging
 import traceback
+from collections.abc import Callable, Iterable, Iterator, Mapping
 from dataclasses import dataclass
-from collections.abc import Callable, Iterable, Mapping
 from typing import Any, ClassVar, TypeVar
 
 import numpy as np
@@ -47,6 +47,36 @@ log = logging.getLogger("lab.viewer")
 EXPLORE_ROOT = "/explore"
 
 H = TypeVar("H")
+
+
+class StateView(Mapping[str, Any]):
+    """Some values of a session's state, by the names an interaction declared it reads
+    (:meth:`InteractionContext.values`): iterating gives the declared names that exist; reading any other
+    name raises :class:`~lab.core.errors.UnknownName` instead of quietly giving nothing."""
+
+    def __init__(self, state: Mapping[str, Any], names: tuple[str, ...], module: str) -> None:
+        self._state = state
+        self._names = names
+        self._module = module
+
+    def _check(self, name: object) -> None:
+        if name not in self._names:
+            raise UnknownName("view", f"the {self._module} interaction read {name!r} without declaring it: "
+                                      f"it declared {list(self._names)} (pass the name to ctx.values)")
+
+    def __getitem__(self, name: str) -> Any:
+        self._check(name)
+        return self._state[name]
+
+    def __contains__(self, name: object) -> bool:
+        self._check(name)
+        return name in self._state
+
+    def __iter__(self) -> Iterator[str]:
+        return iter([name for name in self._names if name in self._state])
+
+    def __len__(self) -> int:
+        return sum(1 for name in self._names if name in self._state)
 
 
 @dataclass
@@ -87,22 +117,42 @@ class InteractionContext:
         :class:`~lab.core.errors.UnknownName` says so: a renamed value fails here, clearly, and in the
         contract test, instead of drawing nothing.
         """
+        self._check(name)
+        source = self.session.state if state is None else state
+        return source.get(name)
+
+    def values(self, names: Iterable[str], state: Mapping[str, Any] | None = None) -> StateView:
+        """The values ``names`` of ``state`` (or of the session now) as a read-only mapping, for the pure
+        functions that take a state: each name is checked as :meth:`value` checks it, and reading a name
+        not in ``names`` from the mapping is refused too (so every name read is declared)."""
+        wanted = tuple(names)
+        for name in wanted:
+            self._check(name)
+        return StateView(self.session.state if state is None else state, wanted, self.session.pipeline.name)
+
+    def _check(self, name: str) -> None:
         views = self.session.pipeline.views
         if name not in views:
             module = self.session.pipeline.name
             raise UnknownName("view", f"the {module} interactions read {name!r}, which pipeline {module!r} "
                                       f"does not list in its views {sorted(views)}: add it to views= in "
                                       f"lab.modules.{module}, or read a value the pipeline has")
-        source = self.session.state if state is None else state
-        return source.get(name)
-
-    def values(self, names: Iterable[str], state: Mapping[str, Any] | None = None) -> dict[str, Any]:
-        """:meth:`value` of each of ``names`` (same checks), by name."""
-        return {name: self.value(name, state) for name in names}
 
     def node(self, *parts: str) -> str:
         """A scene node name under this module's root: ``/explore/<module>/<parts...>``."""
         return "/".join((EXPLORE_ROOT, self.session.pipeline.name, *parts))
+
+    def attempt(self, action: Callable[[], H]) -> H | None:
+        """Run ``action`` now and return what it returns; what it raises is shown in the tab (as a viser
+        callback's error would be) and None is returned: the public actions of interactions (a pick, a
+        move) use it, so a script or a test calling them gets None instead of an exception."""
+        result: list[H | None] = [None]
+
+        def run() -> None:
+            result[0] = action()
+
+        self.guarded(run)()
+        return result[0]
 
     def guarded(self, action: Callable[..., Any]) -> Callable[..., None]:
         """``action`` wrapped for a viser callback: what it raises is shown in the tab, not raised."""
@@ -166,6 +216,15 @@ class Interaction:
         self.handles.append(handle)
         return handle
 
+    def untrack(self, handle: Any) -> None:
+        """Remove ``handle`` now (when it is still there) and forget it (a plot redrawn in another shape)."""
+        if handle is None:
+            return
+        with contextlib.suppress(Exception):  # gone with its parent already
+            handle.remove()
+        if handle in self.handles:
+            self.handles.remove(handle)
+
     def update(self, state: Mapping[str, Any]) -> None:
         """Called after every redraw with a copy of the session's state: redraw what depends on it
         (cheaply: compare the identity of the values used last time)."""
@@ -196,4 +255,5 @@ def interactions_for(module: str) -> list[type[Interaction]]:
     return [c for c in classes if isinstance(c, type) and issubclass(c, Interaction)]
 
 
-__all__ = ["EXPLORE_ROOT", "Interaction", "InteractionContext", "NamedHandles", "interactions_for"]
+__all__ = ["EXPLORE_ROOT", "Interaction", "InteractionContext", "NamedHandles", "StateView",
+           "interactions_for"]

@@ -1,4 +1,5 @@
-"""Interactions of the diffusion module: scrub a sampler's steps, noise to shape, with the predicted x0 beside it.
+"""Interactions of the diffusion module: scrub a sampler's steps, noise to shape, with the predicted x0 beside
+it.
 
 * **Scrub the steps** of the last sampling run (the ``trace`` value: x_t and the predicted x0 at up
   to 101 frames): a slider picks the frame. Points: the cloud ``x_t`` in the scene and, beside it
@@ -17,7 +18,8 @@ The math is in the typed functions below (tested directly); the class only wires
 
 from __future__ import annotations
 
-from typing import Any, Mapping, Sequence
+from collections.abc import Mapping, Sequence
+from typing import Any
 
 import numpy as np
 
@@ -49,15 +51,17 @@ def last_sample_params(history: Sequence[Any]) -> dict[str, Any]:
 def frame_index(trace: SamplingTrace, index: int) -> int:
     """``index`` checked against the trace's frames (``InvalidValue`` naming the range)."""
     if not 0 <= int(index) < trace.frames:
-        raise InvalidValue("frame", f"must be in [0, {trace.frames - 1}] (the trace has {trace.frames} frames), "
-                                    f"got {index}")
+        raise InvalidValue("frame", f"must be in [0, {trace.frames - 1}] (the trace has {trace.frames} "
+                                    f"frames), got {index}")
     return int(index)
 
 
 def as_3d(points: np.ndarray) -> np.ndarray:
     """``(N, 2)`` or ``(N, 3)`` -> ``(N, 3)`` float64 (2D points at z = 0)."""
     points = np.asarray(points, dtype=np.float64)
-    return points if points.shape[1] == 3 else np.concatenate([points, np.zeros((len(points), 3 - points.shape[1]))], 1)
+    return points if points.shape[1] == 3 else np.concatenate([points,
+                                                               np.zeros((len(points),
+                                                                         3 - points.shape[1]))], 1)
 
 
 def beside_offset(trace: SamplingTrace) -> np.ndarray:
@@ -74,7 +78,8 @@ def frame_clouds(trace: SamplingTrace, index: int) -> tuple[np.ndarray, np.ndarr
 
 
 def trajectory_segments(trace: SamplingTrace, index: int, *, count: int = TRAJECTORIES) -> np.ndarray:
-    """``(count * index, 2, 3)`` line segments of the first ``count`` samples' paths from frame 0 to ``index``."""
+    """``(count * index, 2, 3)`` line segments of the first ``count`` samples' paths from frame 0 to
+    ``index``."""
     index = frame_index(trace, index)
     paths = np.stack([as_3d(frame[:count]) for frame in trace.x_t[:index + 1]])  # (F, K, 3)
     if index == 0:
@@ -108,7 +113,8 @@ def _rgb8(pixels: np.ndarray, scale: int = 4) -> np.ndarray:
 # The interaction
 # ----------------------------------------------------------------------------------------------------
 class SamplerScrubber(Interaction):
-    """Scrub a sampler's steps (points: x_t and x0_hat clouds, trajectories; digits: image grids) and re-sample."""
+    """Scrub a sampler's steps (points: x_t and x0_hat clouds, trajectories; digits: image grids) and
+    re-sample."""
 
     title = "Sampler steps"
 
@@ -125,11 +131,14 @@ class SamplerScrubber(Interaction):
         self.slider = self.track(gui.add_slider("frame", 0, 1, 1, 0, hint="scrub the sampler's steps"))
         self.sampler_choice = self.track(gui.add_dropdown("sampler", ("ddim", "ddpm", "euler", "heun", "sde"),
                                                           initial_value="ddim"))
-        self.steps_input = self.track(gui.add_slider("steps", 1, 200, 1, 50, hint="sampler steps (re-samples)"))
+        self.steps_input = self.track(gui.add_slider("steps", 1, 200, 1, 50,
+                                                     hint="sampler steps (re-samples)"))
         self.guidance_input = self.track(gui.add_slider("guidance scale", 0.0, 10.0, 0.5, 0.0,
-                                                        hint="classifier-free guidance w (conditional models)"))
+                                                        hint="classifier-free guidance w (conditional "
+                                                             "models)"))
         self.sample_button = self.track(gui.add_button("Sample again"))
-        self.syncing = False  # set while update() shows the run's controls (viser calls on_update for those too)
+        # set while update() shows the run's controls (viser calls on_update for those too)
+        self.syncing = False
         self.slider.on_update(ctx.guarded(lambda _: self.show_frame(int(self.slider.value))))
         self.sample_button.on_click(ctx.guarded(lambda _: self.resample()))
         self.steps_input.on_update(ctx.guarded(lambda _: None if self.syncing else self.resample()))
@@ -138,9 +147,9 @@ class SamplerScrubber(Interaction):
 
     # --- actions (public: tests and scripts call them) -----------------------------------------------
     def resample(self, **controls: Any) -> None:
-        """Run ``sample`` again with this folder's sampler, steps and guidance scale (``controls`` override them);
-        its other controls (count, eta, label ...) stay those of the last ``sample`` run."""
-        if "model" not in self.ctx.session.state:
+        """Run ``sample`` again with this folder's sampler, steps and guidance scale (``controls`` override
+        them); its other controls (count, eta, label ...) stay those of the last ``sample`` run."""
+        if self.ctx.value("model") is None:
             raise InvalidValue("model", "train the denoiser first (step train_denoiser)")
         params = {**last_sample_params(self.ctx.session.history), "sampler": str(self.sampler_choice.value),
                   "steps": int(self.steps_input.value)}
@@ -164,7 +173,7 @@ class SamplerScrubber(Interaction):
 
     # --- redraw --------------------------------------------------------------------------------------
     def update(self, state: Mapping[str, Any]) -> None:
-        trace = state.get("trace")
+        trace = self.ctx.value("trace", state)
         if trace is self.trace:
             return
         self.trace = trace if isinstance(trace, SamplingTrace) else None
@@ -210,13 +219,16 @@ class SamplerScrubber(Interaction):
         scene = self.ctx.scene
         size = 0.01 * max(self.ctx.extent(), 1e-3)
         noisy, clean = self.clouds
-        self._put("x_t", lambda: scene.add_point_cloud(self.ctx.node("x_t"), noisy.astype(np.float32), NOISY_COLOR,
+        self._put("x_t", lambda: scene.add_point_cloud(self.ctx.node("x_t"), noisy.astype(np.float32),
+                                                       NOISY_COLOR,
                                                       point_size=size))
-        self._put("x0", lambda: scene.add_point_cloud(self.ctx.node("x0"), clean.astype(np.float32), CLEAN_COLOR,
+        self._put("x0", lambda: scene.add_point_cloud(self.ctx.node("x0"), clean.astype(np.float32),
+                                                      CLEAN_COLOR,
                                                      point_size=size))
         if len(self.segments):
             self._put("paths", lambda: scene.add_line_segments(self.ctx.node("trajectories"),
-                                                              self.segments.astype(np.float32), TRAJECTORY_COLOR,
+                                                              self.segments.astype(np.float32),
+                                                              TRAJECTORY_COLOR,
                                                               thickness=0.2 * size))
         elif "paths" in self.nodes:
             self._remove("paths")
@@ -248,5 +260,5 @@ class SamplerScrubber(Interaction):
 
 INTERACTIONS = [SamplerScrubber]
 
-__all__ = ["INTERACTIONS", "SamplerScrubber", "last_sample_params", "frame_index", "frame_clouds",
-           "trajectory_segments", "digit_frames", "frame_caption", "beside_offset", "as_3d"]
+__all__ = ["INTERACTIONS", "SamplerScrubber", "as_3d", "beside_offset", "digit_frames", "frame_caption",
+           "frame_clouds", "frame_index", "last_sample_params", "trajectory_segments"]

@@ -18,8 +18,9 @@ The math lives in pure functions (tested directly): :func:`plane_pixel`, :func:`
 
 from __future__ import annotations
 
+from collections.abc import Mapping
 from dataclasses import dataclass
-from typing import Any, Callable, Mapping
+from typing import Any
 
 import cv2
 import numpy as np
@@ -28,8 +29,7 @@ from lab.core.errors import InvalidValue, MissingInput
 from lab.core.values import Image, Mesh
 from lab.modules.texture import (EfrosLeungTrace, PixelMatches, QuiltLayout, efros_leung_pixel_matches,
                                  parametric_surface, textured_trimesh)
-from lab.viewer.interactions import NamedHandles
-from lab.viewer.interactions import Interaction, InteractionContext
+from lab.viewer.interactions import Interaction, InteractionContext, NamedHandles
 from lab.viewer.renderers import to_rgb8
 
 CANDIDATE_COLOR = (255, 210, 0)
@@ -42,6 +42,11 @@ UNKNOWN_COLOR = (70, 70, 90)
 PLANE_SIDE = 2.0
 #: Panels are scaled up to at least this many pixels on their longer side.
 PANEL_SIDE = 240
+#: The state values each interaction reads (through ``ctx.values``; each one of the pipeline's views):
+#: the Efros–Leung texture, its trace and the sample (:class:`GrowthExplorer`), the quilt and its layout
+#: (:class:`QuiltExplorer`); the mesh viewer reads the textures of :data:`TEXTURES`.
+GROWTH_READS = ("efros_leung", "efros_leung_trace", "sample")
+QUILT_READS = ("quilting_layout", "quilting")
 
 
 # ----------------------------------------------------------------------------------------------------
@@ -50,7 +55,8 @@ PANEL_SIDE = 240
 @dataclass(frozen=True)
 class Plane:
     """An image of ``width x height`` pixels drawn flat in the scene's z = ``position[2]`` plane, centred at
-    ``position``, ``scale`` scene units per pixel; u (columns) along +x, v (rows) along +y (viser's image axes)."""
+    ``position``, ``scale`` scene units per pixel; u (columns) along +x, v (rows) along +y (viser's image
+    axes)."""
 
     position: tuple[float, float, float]
     width: int
@@ -65,7 +71,8 @@ class Plane:
 
 
 def plane_pixel(plane: Plane, ray_origin: Any, ray_direction: Any) -> tuple[int, int]:
-    """The pixel ``(row, col)`` of ``plane`` a click's ray hits (InvalidValue when it misses or runs parallel)."""
+    """The pixel ``(row, col)`` of ``plane`` a click's ray hits (InvalidValue when it misses or runs
+    parallel)."""
     origin = np.asarray(ray_origin, dtype=np.float64).reshape(3)
     direction = np.asarray(ray_direction, dtype=np.float64).reshape(3)
     if abs(direction[2]) < 1e-12:
@@ -118,7 +125,8 @@ def window_panel(matches: PixelMatches) -> np.ndarray:
     rgb[~matches.known] = UNKNOWN_COLOR
     big, factor = _upscaled(rgb)
     c = matches.known.shape[0] // 2
-    cv2.rectangle(big, (c * factor, c * factor), ((c + 1) * factor - 1, (c + 1) * factor - 1), WINDOW_COLOR, 2)
+    cv2.rectangle(big, (c * factor, c * factor), ((c + 1) * factor - 1, (c + 1) * factor - 1), WINDOW_COLOR,
+                  2)
     return big
 
 
@@ -130,7 +138,8 @@ def match_panel(sample: Image, matches: PixelMatches, window: int) -> np.ndarray
         centre = (int((left + half + 0.5) * factor), int((top + half + 0.5) * factor))
         cv2.circle(big, centre, max(2, factor // 2), CANDIDATE_COLOR, -1)
     top, left = (int(v) for v in matches.chosen)
-    cv2.rectangle(big, (left * factor, top * factor), ((left + window) * factor - 1, (top + window) * factor - 1),
+    cv2.rectangle(big, (left * factor, top * factor),
+                  ((left + window) * factor - 1, (top + window) * factor - 1),
                   CHOSEN_COLOR, 2)
     return big
 
@@ -138,7 +147,7 @@ def match_panel(sample: Image, matches: PixelMatches, window: int) -> np.ndarray
 def block_at(layout: QuiltLayout, row: int, col: int) -> int:
     """Index of the block whose pixel is on top at output pixel ``(row, col)`` (the last one that kept it)."""
     found = -1
-    for k, ((y, x), kept) in enumerate(zip(layout.positions, layout.new_pixels)):
+    for k, ((y, x), kept) in enumerate(zip(layout.positions, layout.new_pixels, strict=True)):
         if y <= row < y + layout.block and x <= col < x + layout.block and kept[row - y, col - x]:
             found = k
     if found < 0:
@@ -216,20 +225,26 @@ class GrowthExplorer(Interaction):
         self.output_plane: Plane | None = None
         self.sample_plane: Plane | None = None
         self.info = self.track(gui.add_markdown("Run **synthesize_efros_leung** to watch the texture grow."))
-        self.grown = self.track(gui.add_slider("grown pixels", min=0, max=1, step=1, initial_value=1, disabled=True))
+        self.grown = self.track(gui.add_slider("grown pixels", min=0, max=1, step=1, initial_value=1,
+                                               disabled=True))
         self.pixel_input = self.track(gui.add_vector2("pixel (row, col)", (0.0, 0.0), step=1.0))
-        self.explain = self.track(gui.add_button("Explain this pixel", hint="its window, candidates and the copy"))
+        self.explain = self.track(gui.add_button("Explain this pixel",
+                                                 hint="its window, candidates and the copy"))
         self.syncing = False  # set while the code moves a slider (viser calls on_update for those too)
         self.grown.on_update(lambda _: None if self.syncing else ctx.guarded(
             lambda: self.show_growth(int(self.grown.value)))())
         self.explain.on_click(lambda _: ctx.guarded(
-            lambda: self.pick_pixel(int(round(self.pixel_input.value[0])), int(round(self.pixel_input.value[1]))))())
+            lambda: self.pick_pixel(round(self.pixel_input.value[0]),
+                                    round(self.pixel_input.value[1])))())
         with ctx.images:
-            self.order_panel = self.track(gui.add_image(np.zeros((8, 8, 3), np.uint8), label="Efros–Leung fill order",
+            self.order_panel = self.track(gui.add_image(np.zeros((8, 8, 3), np.uint8),
+                                                        label="Efros–Leung fill order",
                                                         visible=False))
-            self.window_image = self.track(gui.add_image(np.zeros((8, 8, 3), np.uint8), label="window when filled",
+            self.window_image = self.track(gui.add_image(np.zeros((8, 8, 3), np.uint8),
+                                                         label="window when filled",
                                                          visible=False))
-            self.match_image = self.track(gui.add_image(np.zeros((8, 8, 3), np.uint8), label="candidates in the sample",
+            self.match_image = self.track(gui.add_image(np.zeros((8, 8, 3), np.uint8),
+                                                        label="candidates in the sample",
                                                         visible=False))
 
     # --- public: what a click or a test does ----------------------------------------------------------
@@ -262,8 +277,10 @@ class GrowthExplorer(Interaction):
 
     # --- viewer hooks ----------------------------------------------------------------------------------
     def update(self, state: Mapping[str, Any]) -> None:
+        state = self.ctx.values(GROWTH_READS, state)
         texture, trace, sample = state.get("efros_leung"), state.get("efros_leung_trace"), state.get("sample")
-        if not isinstance(texture, Image) or not isinstance(trace, EfrosLeungTrace) or not isinstance(sample, Image):
+        if not isinstance(texture, Image) or not isinstance(trace, EfrosLeungTrace) or not isinstance(sample,
+                                                                                                      Image):
             if self.trace is not None:
                 self._forget()
             return
@@ -281,10 +298,10 @@ class GrowthExplorer(Interaction):
         finally:
             self.syncing = False
         self.grown.disabled = False
-        self.info.content = (f"{texture.width} x {texture.height} grown in {trace.layers} onion layers from a "
-                             f"{sample.width} x {sample.height} sample (window {trace.window}, epsilon "
-                             f"{trace.epsilon:g}). Click a pixel of the texture in the scene, or type it, to see "
-                             "why it got its value.")
+        self.info.content = (f"{texture.width} x {texture.height} grown in {trace.layers} onion layers from "
+                             f"a {sample.width} x {sample.height} sample (window {trace.window}, epsilon "
+                             f"{trace.epsilon:g}). Click a pixel of the texture in the scene, or type it, to "
+                             "see why it got its value.")
         self.order_panel.visible = True
         self._place_planes()
         self.show_growth(total)
@@ -342,8 +359,10 @@ class GrowthExplorer(Interaction):
         scene = self.ctx.scene
         outline = _rectangle(self.output_plane, row - half, col - half, trace.window, trace.window)
         self.nodes.put("window", lambda: scene.add_line_segments(
-            self.ctx.node("efros_leung", "window"), outline, WINDOW_COLOR, thickness=3.0, thickness_units="screen"))
-        centres = np.array([self.sample_plane.point(t + half, l + half) for t, l in matches.candidates])
+            self.ctx.node("efros_leung", "window"), outline, WINDOW_COLOR, thickness=3.0,
+            thickness_units="screen"))
+        centres = np.array([self.sample_plane.point(top + half, left + half) for top,
+                            left in matches.candidates])
         centres[:, 2] += 0.01
         self.nodes.put("candidates", lambda: scene.add_point_cloud(
             self.ctx.node("efros_leung", "candidates"), centres.astype(np.float32), CANDIDATE_COLOR,
@@ -351,16 +370,18 @@ class GrowthExplorer(Interaction):
         top, left = (int(v) for v in matches.chosen)
         box = _rectangle(self.sample_plane, top, left, trace.window, trace.window)
         self.nodes.put("chosen", lambda: scene.add_line_segments(
-            self.ctx.node("efros_leung", "chosen"), box, CHOSEN_COLOR, thickness=3.0, thickness_units="screen"))
+            self.ctx.node("efros_leung", "chosen"), box, CHOSEN_COLOR, thickness=3.0,
+            thickness_units="screen"))
         self.window_image.image = window_panel(matches)
         self.match_image.image = match_panel(self.sample, matches, trace.window)
         self.window_image.visible = self.match_image.visible = True
-        seed = " (a seed pixel: copied with the seed patch, not matched)" if matches.order < trace.seed_pixels else ""
+        seeded = matches.order < trace.seed_pixels
+        seed = " (a seed pixel: copied with the seed patch, not matched)" if seeded else ""
         self.info.content = (f"Pixel ({row}, {col}) was filled {matches.order + 1}th{seed}: "
                              f"{int(matches.known.sum())} of {matches.known.size} window pixels known, "
-                             f"{len(matches.candidates)} candidate window(s) within (1 + {trace.epsilon:g}) of the "
-                             f"best distance {float(matches.distances.min()):.4g}; it copied the centre of the window "
-                             f"at ({top}, {left}) of the sample (green).")
+                             f"{len(matches.candidates)} candidate window(s) within (1 + {trace.epsilon:g}) "
+                             f"of the best distance {float(matches.distances.min()):.4g}; it copied the "
+                             f"centre of the window at ({top}, {left}) of the sample (green).")
 
 
 # ----------------------------------------------------------------------------------------------------
@@ -380,16 +401,19 @@ class QuiltExplorer(Interaction):
         self.block: int | None = None
         self.plane: Plane | None = None
         self.info = self.track(gui.add_markdown("Run **quilt** to see each block's overlap and cut."))
-        self.slider = self.track(gui.add_slider("block", min=0, max=1, step=1, initial_value=0, disabled=True))
+        self.slider = self.track(gui.add_slider("block", min=0, max=1, step=1, initial_value=0,
+                                                disabled=True))
         self.syncing = False
         self.slider.on_update(lambda _: None if self.syncing else ctx.guarded(
             lambda: self.pick_block(int(self.slider.value)))())
         with ctx.images:
-            self.panel = self.track(gui.add_image(np.zeros((8, 8, 3), np.uint8), label="overlap error and cut",
+            self.panel = self.track(gui.add_image(np.zeros((8, 8, 3), np.uint8),
+                                                  label="overlap error and cut",
                                                   visible=False))
 
     def pick_block(self, index: int) -> np.ndarray:
-        """Show block ``index``: its error surface with the cut (returned, uint8) and its outline on the quilt."""
+        """Show block ``index``: its error surface with the cut (returned, uint8) and its outline on the
+        quilt."""
         if self.layout is None:
             raise MissingInput("quilting", "run step 'quilt' first")
         panel = overlap_panel(self.layout, index)
@@ -405,9 +429,10 @@ class QuiltExplorer(Interaction):
         sy, sx = (int(v) for v in self.layout.sources[index])
         errors = self.layout.errors[index]
         cut = cut_mask(self.layout, index)
-        self.info.content = (f"Block {index} at ({y}, {x}) of the quilt, copied from ({sy}, {sx}) of the sample. "
-                             f"Overlap error: mean {errors[errors > 0].mean() if (errors > 0).any() else 0.0:.4g}; "
-                             f"along the cut {errors[cut].sum():.4g} over {int(cut.sum())} pixels (red).")
+        self.info.content = (f"Block {index} at ({y}, {x}) of the quilt, copied from ({sy}, {sx}) of the "
+                             "sample. Overlap error: mean "
+                             f"{errors[errors > 0].mean() if (errors > 0).any() else 0.0:.4g}; along the cut "
+                             f"{errors[cut].sum():.4g} over {int(cut.sum())} pixels (red).")
         b = self.layout.block
         outline = _rectangle(self.plane, y, x, b, b)
         self.nodes.put("block", lambda: self.ctx.scene.add_line_segments(
@@ -426,6 +451,7 @@ class QuiltExplorer(Interaction):
         return sorted(self.nodes.handles)
 
     def update(self, state: Mapping[str, Any]) -> None:
+        state = self.ctx.values(QUILT_READS, state)
         layout, quilting = state.get("quilting_layout"), state.get("quilting")
         if not isinstance(layout, QuiltLayout) or not isinstance(quilting, Image):
             if self.layout is not None:
@@ -491,7 +517,8 @@ class MeshViewer(Interaction):
         self.state: Mapping[str, Any] = {}
         self.shown: tuple[str, str, int, int] | None = None
         self.texture = self.track(gui.add_dropdown("texture", TEXTURES, initial_value="sample"))
-        self.shape = self.track(gui.add_dropdown("shape", ("torus", "cylinder", "plane"), initial_value="torus"))
+        self.shape = self.track(gui.add_dropdown("shape", ("torus", "cylinder", "plane"),
+                                                 initial_value="torus"))
         self.repeats = self.track(gui.add_slider("repeats", min=1, max=6, step=1, initial_value=2))
         self.info = self.track(gui.add_markdown(""))
         self.syncing = False
@@ -507,7 +534,8 @@ class MeshViewer(Interaction):
         self.nodes.put("mesh", lambda: self.ctx.scene.add_mesh_trimesh(
             self.ctx.node("mesh", "surface"), mesh, position=(0.0, 2.6 * PLANE_SIDE / 2 + 1.5, 0.0)))
         self.shown = (texture, shape, int(repeats), id(image))
-        self.info.content = f"{texture} ({image.width} x {image.height}) on a {shape}, repeated {int(repeats)}x."
+        self.info.content = (f"{texture} ({image.width} x {image.height}) on a {shape}, repeated "
+                             f"{int(repeats)}x.")
         self.syncing = True
         try:
             self.texture.value, self.shape.value, self.repeats.value = texture, shape, int(repeats)
@@ -519,7 +547,7 @@ class MeshViewer(Interaction):
         return sorted(self.nodes.handles)
 
     def update(self, state: Mapping[str, Any]) -> None:
-        self.state = state
+        self.state = state = self.ctx.values(TEXTURES, state)
         available = available_textures(state)
         if not available:
             self.nodes.clear()
@@ -546,6 +574,6 @@ class MeshViewer(Interaction):
 
 INTERACTIONS = [GrowthExplorer, QuiltExplorer, MeshViewer]
 
-__all__ = ["INTERACTIONS", "GrowthExplorer", "QuiltExplorer", "MeshViewer", "Plane", "plane_pixel",
-           "fill_order_image", "growth_frame", "window_panel", "match_panel", "block_at", "cut_mask",
-           "overlap_panel", "available_textures", "mesh_for"]
+__all__ = ["GROWTH_READS", "INTERACTIONS", "QUILT_READS", "TEXTURES", "GrowthExplorer", "MeshViewer", "Plane",
+           "QuiltExplorer", "available_textures", "block_at", "cut_mask", "fill_order_image", "growth_frame",
+           "match_panel", "mesh_for", "overlap_panel", "plane_pixel", "window_panel"]
