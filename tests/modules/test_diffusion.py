@@ -1,4 +1,5 @@
-"""lab.modules.diffusion: schedules, the forward process, the updates against diffusers, samplers, training, errors.
+"""lab.modules.diffusion: schedules, the forward process, the updates against diffusers, samplers, training,
+errors.
 
 diffusers is a test-only dependency: its DDPMScheduler / DDIMScheduler are the reference of our updates.
 Models here are tiny (a 32-wide MLP, a few hundred iterations) so the file runs in seconds.
@@ -43,8 +44,16 @@ def flow_moons():
 
 def test_registered():
     assert "diffusion" in MODULES and get_pipeline("diffusion") is PIPELINE
-    assert [s.name for s in PIPELINE.steps][:4] == ["noise_schedule", "forward_noising", "train_denoiser", "sample"]
+    first = ["noise_schedule", "forward_noising", "train_denoiser", "sample"]
+    assert [s.name for s in PIPELINE.steps][:4] == first
     assert PIPELINE.step("train_denoiser").is_generator and PIPELINE.step("sample").is_generator
+
+
+def test_views_are_values_the_steps_write():
+    """The viewer's scrubber reads ``trace`` and ``model`` by name: the pipeline declares and writes both."""
+    written = {name for spec in PIPELINE.steps for name in spec.writes}
+    assert PIPELINE.views == {"trace", "model"} and PIPELINE.views <= written
+    assert PIPELINE.producer("trace").name == "sample" and PIPELINE.producer("model").name == "train_denoiser"
 
 
 # --- datasets -----------------------------------------------------------------------------------------
@@ -70,7 +79,7 @@ def test_digits_dataset_labels_and_classifier():
     loaded = PIPELINE.dataset("digits").load({})
     data = loaded.state["training_data"]
     assert data.x.shape[1] == 64 and data.classes == 10 and set(np.unique(data.labels)) == set(range(10))
-    assert 0.0 <= data.x.min() and data.x.max() <= 1.0
+    assert data.x.min() >= 0.0 and data.x.max() <= 1.0
     held, labels = loaded.truth["held_out"], loaded.truth["held_out_labels"]
     assert len(held) + len(data.x) == 1797
     accuracy = np.mean(loaded.truth["classifier"].predict(held) == labels)
@@ -86,7 +95,8 @@ def test_linear_schedule_known_answers_and_diffusers():
     assert schedule.alphas_cumprod[0] == pytest.approx(1 - 1e-4)
     # prod (1 - beta) with beta linear: about exp(-sum beta) = exp(-10.05)
     assert schedule.alphas_cumprod[-1] == pytest.approx(4.04e-5, rel=0.01)
-    reference = DDPMScheduler(num_train_timesteps=1000, beta_schedule="linear").alphas_cumprod.double().numpy()
+    reference = DDPMScheduler(num_train_timesteps=1000,
+                              beta_schedule="linear").alphas_cumprod.double().numpy()
     np.testing.assert_allclose(schedule.alphas_cumprod, reference, rtol=1e-5)
     # other T: the betas scale by 1000 / T, so abar_T stays about the same
     short = D.make_schedule("linear", 100)
@@ -99,7 +109,8 @@ def test_cosine_schedule_matches_its_formula_and_diffusers():
     f = lambda t: math.cos((t / 1000 + 0.008) / 1.008 * math.pi / 2) ** 2  # noqa: E731
     assert schedule.alphas_cumprod[499] == pytest.approx(f(500) / f(0), rel=1e-9)
     assert schedule.betas.max() <= 0.999
-    reference = DDPMScheduler(num_train_timesteps=1000, beta_schedule="squaredcos_cap_v2").alphas_cumprod.double()
+    reference = DDPMScheduler(num_train_timesteps=1000,
+                              beta_schedule="squaredcos_cap_v2").alphas_cumprod.double()
     np.testing.assert_allclose(schedule.alphas_cumprod, reference.numpy(), rtol=1e-5, atol=1e-9)
 
 
@@ -160,7 +171,8 @@ def test_ddpm_step_matches_diffusers(prediction, steps):
         x, out, _ = _inputs(t)
         abar, abar_prev = alphas[t], (alphas[t_prev] if t_prev >= 0 else 1.0)
         theirs = scheduler.step(out, t, x, generator=torch.Generator().manual_seed(t))
-        a, b = torch.tensor(abar, dtype=torch.float32).sqrt(), torch.tensor(1 - abar, dtype=torch.float32).sqrt()
+        a = torch.tensor(abar, dtype=torch.float32).sqrt()
+        b = torch.tensor(1 - abar, dtype=torch.float32).sqrt()
         x0 = {"epsilon": D.predicted_x0_from_eps(x, out, abar), "v_prediction": a * x - b * out,
               "sample": out}[prediction]
         noise = torch.randn(x.shape, generator=torch.Generator().manual_seed(t)) if t > 0 else None
@@ -194,13 +206,14 @@ def test_ddim_with_eta_one_has_ddpm_variance():
     x, eps, noise = _inputs(1, (4000, 2))
     abar, abar_prev = 0.3, 0.5
     x0 = D.predicted_x0_from_eps(x, eps, abar)
-    ddim = D.ddim_step(x, eps, abar, abar_prev, eta=1.0, noise=noise) - D.ddim_step(x, eps, abar, abar_prev, eta=1.0,
-                                                                                    noise=torch.zeros_like(noise))
+    ddim = D.ddim_step(x, eps, abar, abar_prev, eta=1.0, noise=noise) \
+        - D.ddim_step(x, eps, abar, abar_prev, eta=1.0, noise=torch.zeros_like(noise))
     ddpm = D.ddpm_step(x, x0, abar, abar_prev, noise=noise) - D.ddpm_step(x, x0, abar, abar_prev)
     np.testing.assert_allclose(ddim.numpy(), ddpm.numpy(), atol=1e-5)  # the same sigma_t (Song et al. eq. 16)
     # and the same mean: DDPM's posterior mean is DDIM's eta = 1 mean
-    np.testing.assert_allclose(D.ddim_step(x, eps, abar, abar_prev, eta=1.0, noise=torch.zeros_like(noise)).numpy(),
-                               D.ddpm_step(x, x0, abar, abar_prev).numpy(), atol=1e-5)
+    np.testing.assert_allclose(
+        D.ddim_step(x, eps, abar, abar_prev, eta=1.0, noise=torch.zeros_like(noise)).numpy(),
+        D.ddpm_step(x, x0, abar, abar_prev).numpy(), atol=1e-5)
 
 
 def test_deterministic_ddim_two_kernel_form_equals_the_equation():
@@ -220,8 +233,8 @@ def test_the_sde_sampler_is_stochastic(moons):
 
 def test_ddim_last_step_returns_the_predicted_x0():
     x, eps, _ = _inputs(2)
-    np.testing.assert_allclose(D.ddim_step(x, eps, 0.9, 1.0).numpy(), D.predicted_x0_from_eps(x, eps, 0.9).numpy(),
-                               atol=1e-6)
+    np.testing.assert_allclose(D.ddim_step(x, eps, 0.9, 1.0).numpy(),
+                               D.predicted_x0_from_eps(x, eps, 0.9).numpy(), atol=1e-6)
 
 
 def test_combine_guidance_known_answers():
@@ -262,7 +275,8 @@ def test_other_objectives_train(objective):
     assert np.all(np.isfinite(session.state["generated"]))
 
 
-@pytest.mark.parametrize("sampler,steps", [("ddpm", 200), ("ddim", 20), ("euler", 20), ("heun", 10), ("sde", 20)])
+@pytest.mark.parametrize(("sampler", "steps"),
+                         [("ddpm", 200), ("ddim", 20), ("euler", 20), ("heun", 10), ("sde", 20)])
 def test_every_sampler_yields_every_step_and_approaches_the_data(moons, sampler, steps):
     previews = []
     record = moons.run("sample", {"sampler": sampler, "steps": steps, "count": 300},
@@ -285,10 +299,12 @@ def test_every_sampler_yields_every_step_and_approaches_the_data(moons, sampler,
 
 def test_sampler_generator_yields_x_t_and_x0_per_step(moons):
     denoiser = D.Denoiser(moons.state["model"], moons.state["schedule"])
-    states = list(D.sample_ddim(denoiser, torch.randn(10, 2), steps=5, generator=torch.Generator().manual_seed(0)))
+    states = list(D.sample_ddim(denoiser, torch.randn(10, 2), steps=5,
+                                generator=torch.Generator().manual_seed(0)))
     assert [s.step for s in states] == [0, 1, 2, 3, 4, 5]
     assert all(s.x_t.shape == (10, 2) and s.x0.shape == (10, 2) for s in states)
-    np.testing.assert_allclose(states[-1].x_t.numpy(), states[-1].x0.numpy(), atol=1e-5)  # abar_prev = 1 at the end
+    # abar_prev = 1 at the end
+    np.testing.assert_allclose(states[-1].x_t.numpy(), states[-1].x0.numpy(), atol=1e-5)
 
 
 def test_euler_on_the_probability_flow_ode_is_ddim(moons):
@@ -353,9 +369,11 @@ def test_conditional_sampling_reports_accuracy_and_diversity(digits_session):
 def test_lesson_steps_chain(digits_session):
     digits_session.run("prepare_update", {"timestep": 50, "stride": 10, "count": 16})
     state = digits_session.state
-    assert state["x_t"].shape == (16, 64) and not np.allclose(state["eps_conditional"], state["eps_unconditional"])
+    assert state["x_t"].shape == (16, 64)
+    assert not np.allclose(state["eps_conditional"], state["eps_unconditional"])
     schedule = state["schedule"]
-    np.testing.assert_allclose(state["step_alphas"], [schedule.alphas_cumprod[50], schedule.alphas_cumprod[40]])
+    np.testing.assert_allclose(state["step_alphas"],
+                               [schedule.alphas_cumprod[50], schedule.alphas_cumprod[40]])
     digits_session.run("combine_guidance", {"guidance_scale": 1.5})
     np.testing.assert_allclose(state["eps_conditional"] * 2.5 - 1.5 * state["eps_unconditional"],
                                digits_session.state["eps_guided"])
@@ -365,9 +383,9 @@ def test_lesson_steps_chain(digits_session):
 
 
 # --- errors ------------------------------------------------------------------------------------------------
-@pytest.mark.parametrize("params,field", [({"steps": 0}, "steps"), ({"eta": 1.5}, "eta"), ({"eta": -0.1}, "eta"),
-                                          ({"guidance_scale": 2.0}, "guidance_scale"), ({"label": 3}, "label"),
-                                          ({"steps": 201}, "steps")])
+@pytest.mark.parametrize(("params", "field"), [
+    ({"steps": 0}, "steps"), ({"eta": 1.5}, "eta"), ({"eta": -0.1}, "eta"),
+    ({"guidance_scale": 2.0}, "guidance_scale"), ({"label": 3}, "label"), ({"steps": 201}, "steps")])
 def test_bad_sampling_controls_are_clear_errors_and_keep_the_state(moons, params, field):
     moons.run("sample", {"sampler": "ddim", "steps": 5, "count": 20})
     before = moons.state["generated"]
