@@ -31,7 +31,7 @@ from typing import Literal, overload
 
 import numpy as np
 import scipy.sparse
-from scipy.optimize import least_squares
+from scipy.optimize import OptimizeResult, least_squares
 from scipy.spatial.transform import Rotation
 
 from lab.core.errors import InvalidControl, InvalidValue
@@ -318,6 +318,252 @@ def _scale_gauge_column(R: np.ndarray, t: np.ndarray, anchor: int, cameras_seen:
     return int(j * camera_params + 3 + k)
 
 
+# --- the solver's parts, in the order bundle_adjust uses them ---------------------------------------
+def _check_controls(loss: str, f_scale: float, max_iterations: int, guard: str, jacobian: str) -> None:
+    if loss not in LOSSES:
+        raise InvalidControl("loss", f"unknown loss {loss!r}; losses are {list(LOSSES)}")
+    if not float(f_scale) > 0:
+        raise InvalidControl("f_scale", f"must be positive, got {f_scale}")
+    if int(max_iterations) < 1:
+        raise InvalidControl("max_iterations", f"must be at least 1, got {max_iterations}")
+    if guard not in ("rms", "robust_cost"):
+        raise InvalidControl("guard", f"must be 'rms' or 'robust_cost', got {guard!r}")
+    if jacobian not in ("analytic", "2-point"):
+        raise InvalidControl("jacobian", f"must be 'analytic' or '2-point', got {jacobian!r}")
+
+
+def _check_fixed(fixed_cameras: tuple[int, ...], cameras: int) -> list[int]:
+    """The held cameras, sorted and without repeats."""
+    fixed = sorted({int(c) for c in fixed_cameras})
+    if any(c < 0 or c >= cameras for c in fixed):
+        raise InvalidControl("fixed_cameras",
+                             f"camera indices must lie in [0, {cameras}), got {tuple(fixed_cameras)}")
+    return fixed
+
+
+@dataclass(frozen=True)
+class _Parameters:
+    """The parameter vector ``x`` of the module docstring, and which of its entries the solver moves.
+
+    ``full`` holds every unknown in the solver's world, the input's translated by ``-origin`` (the
+    first held camera's centre); ``free`` indexes the entries that move, the others (held poses,
+    the scale-gauge entry) keep their value in ``full``. ``intrinsics`` ``(N, 4)`` are the input's
+    ``(fx, fy, cx, cy)``, used as they are when not refined.
+    """
+
+    cameras: int
+    points: int
+    camera_params: int  # 6, or 10 with per-camera intrinsics
+    intrinsic_params: int  # 4 for one shared refined K, else 0
+    intrinsics: np.ndarray
+    origin: np.ndarray
+    full: np.ndarray
+    free: np.ndarray
+
+    @property
+    def per_camera_intrinsics(self) -> bool:
+        return self.camera_params == 10
+
+    def expand(self, x_free: np.ndarray) -> np.ndarray:
+        """The full vector with the free entries ``x_free``."""
+        full = self.full.copy()
+        full[self.free] = x_free
+        return full
+
+    def camera_block(self, full: np.ndarray) -> np.ndarray:
+        """``(N, camera_params)``: rotation vector, translation [, fx, fy, cx, cy] per camera."""
+        return full[: self.cameras * self.camera_params].reshape(self.cameras, self.camera_params)
+
+    def shared_intrinsics(self, full: np.ndarray) -> np.ndarray:
+        """``(4,)`` the refined shared ``(fx, fy, cx, cy)`` (with ``intrinsic_params == 4``)."""
+        start = self.cameras * self.camera_params
+        return full[start: start + 4]
+
+    def point_block(self, full: np.ndarray) -> np.ndarray:
+        """``(P, 3)`` the points, in the solver's world."""
+        return full[self.cameras * self.camera_params + self.intrinsic_params:].reshape(self.points, 3)
+
+    def observed_intrinsics(self, full: np.ndarray, cams: np.ndarray) -> np.ndarray:
+        """``(M, 4)`` the ``(fx, fy, cx, cy)`` of the camera of each observation."""
+        if self.per_camera_intrinsics:
+            return self.camera_block(full)[:, 6:][cams]
+        if self.intrinsic_params:
+            return np.broadcast_to(self.shared_intrinsics(full), (len(cams), 4))
+        return self.intrinsics[cams]
+
+
+def _pack_parameters(K: np.ndarray, R: np.ndarray, t: np.ndarray, X: np.ndarray, cams: np.ndarray,
+                     fixed: list[int], *, refine_intrinsics: bool, fix_scale: bool) -> _Parameters:
+    """The starting parameter vector and its free entries: every pose but the held cameras', every
+    point, the intrinsics when refined, less the scale-gauge entry (see :func:`bundle_adjust`)."""
+    n = len(R)
+    shared_K = K.ndim == 2
+    Ks = np.broadcast_to(K, (n, 3, 3))
+    per_camera_intrinsics = refine_intrinsics and not shared_K
+    cp = 10 if per_camera_intrinsics else 6
+    ip = 4 if (refine_intrinsics and shared_K) else 0
+    camera_block = np.zeros((n, cp))
+    camera_block[:, :3] = matrix_to_rotvec(R)
+    # Work in a world centred on the first held camera: X~ = X - c, t~ = t + R c. The scaling left
+    # by holding that camera is then about the origin, under which every t~ scales exactly, so
+    # holding one entry of a t~ fixes the scale whatever the rotations do (and the result does not
+    # depend on where the world's origin is). Better conditioned, too.
+    origin = -R[fixed[0]].T @ t[fixed[0]] if fixed else np.zeros(3)
+    camera_block[:, 3:6] = t + R @ origin
+    intrinsics = np.stack([Ks[:, 0, 0], Ks[:, 1, 1], Ks[:, 0, 2], Ks[:, 1, 2]], axis=1)  # (N, 4)
+    if per_camera_intrinsics:
+        camera_block[:, 6:] = intrinsics
+    shared_block = intrinsics[0].copy() if ip else np.zeros(0)
+    full = np.concatenate([camera_block.ravel(), shared_block, (X - origin).ravel()])
+    free = np.ones(full.size, dtype=bool)
+    for c in fixed:
+        free[c * cp: c * cp + 6] = False
+    if fix_scale and len(fixed) == 1:
+        column = _scale_gauge_column(R, camera_block[:, 3:6], fixed[0], cams, cp)
+        if column is not None:
+            free[column] = False
+    return _Parameters(cameras=n, points=len(X), camera_params=cp, intrinsic_params=ip,
+                       intrinsics=intrinsics, origin=origin, full=full, free=np.flatnonzero(free))
+
+
+class _Reprojection:
+    """The residuals of the free parameters and their sparse analytic Jacobian.
+
+    Residual rows ``2 i``, ``2 i + 1`` are ``pi(K_c (R_c X_p + t_c)) - x_i`` of observation ``i``.
+    The Jacobian's pattern is :func:`_jacobian_coordinates`' without the held parameters' columns;
+    its CSR layout is built once, and each evaluation only refills the values.
+    """
+
+    def __init__(self, parameters: _Parameters, K: np.ndarray, cams: np.ndarray, pts: np.ndarray,
+                 obs: np.ndarray) -> None:
+        self.parameters = parameters
+        self.cams, self.pts, self.obs = cams, pts, obs
+        self.skews = np.broadcast_to(K, (parameters.cameras, 3, 3))[:, 0, 1][cams]
+        free = parameters.free
+        column_map = np.full(parameters.full.size, -1)
+        column_map[free] = np.arange(len(free))
+        rows, cols = _jacobian_coordinates(cams, pts, parameters.cameras,
+                                           camera_params=parameters.camera_params,
+                                           intrinsic_params=parameters.intrinsic_params)
+        self.keep = column_map[cols] >= 0
+        self.rows, self.cols = rows[self.keep], column_map[cols[self.keep]]
+        self.shape = (2 * len(cams), len(free))
+        layout = scipy.sparse.csr_matrix((np.arange(1, len(self.rows) + 1), (self.rows, self.cols)),
+                                         shape=self.shape)
+        self._csr_order, self._csr_indices, self._csr_indptr = layout.data - 1, layout.indices, layout.indptr
+
+    def _projection_inputs(self, x_free: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """Per camera its rotation vector and translation; per observation its point and the
+        ``(fx, fy, cx, cy)`` of its camera."""
+        parameters = self.parameters
+        full = parameters.expand(x_free)
+        block = parameters.camera_block(full)
+        return (block[:, :3], block[:, 3:6], parameters.point_block(full)[self.pts],
+                parameters.observed_intrinsics(full, self.cams))
+
+    def residuals(self, x_free: np.ndarray) -> np.ndarray:
+        """``(2M,)`` the reprojection errors, u and v of each observation in turn."""
+        rotvecs, translations, points, intrinsics = self._projection_inputs(x_free)
+        uv, _ = project_with_jacobians(rotvecs, translations, points, intrinsics, self.skews,
+                                       cameras=self.cams, jacobians=False)
+        return (uv - self.obs).ravel()
+
+    def jacobian(self, x_free: np.ndarray) -> scipy.sparse.csr_matrix:
+        """``(2M, free)`` d residuals / d free parameters, analytic, in the pattern."""
+        rotvecs, translations, points, intrinsics = self._projection_inputs(x_free)
+        _, J = project_with_jacobians(rotvecs, translations, points, intrinsics, self.skews,
+                                      cameras=self.cams)
+        parts = [J["rotvec"], J["t"]]
+        if self.parameters.per_camera_intrinsics:
+            parts.append(J["intrinsics"])
+        if self.parameters.intrinsic_params:
+            parts.append(J["intrinsics"])
+        parts.append(J["point"])
+        values = np.concatenate(parts, axis=2)  # (M, 2, width), the order of _jacobian_coordinates
+        return scipy.sparse.csr_matrix((values[self.keep][self._csr_order], self._csr_indices,
+                                        self._csr_indptr), shape=self.shape)
+
+    def pattern(self, sparsity: np.ndarray | scipy.sparse.spmatrix | None) -> scipy.sparse.csr_matrix:
+        """The 0/1 pattern over the free columns that finite differences are grouped by: the
+        Jacobian's, or the given one over all parameters with the held columns dropped."""
+        if sparsity is None:
+            return scipy.sparse.csr_matrix((np.ones(len(self.rows), dtype=np.int8), (self.rows, self.cols)),
+                                           shape=self.shape)
+        given = scipy.sparse.csr_matrix(sparsity)
+        expected = (self.shape[0], self.parameters.full.size)
+        if given.shape != expected:
+            raise InvalidValue("sparsity", f"expected shape {expected} "
+                                           "(2 rows per observation, a column per parameter), "
+                                           f"got {given.shape}")
+        return (given[:, self.parameters.free] != 0).astype(np.int8)
+
+
+class _IterationLog:
+    """The solver's callback: the RMS reprojection error after every iteration (after ``rms_before``
+    in ``history``), reported to ``on_iteration``; stops the solver after ``max_iterations``."""
+
+    def __init__(self, problem: _Reprojection, rms_before: float, max_iterations: int,
+                 on_iteration: Callable[[int, float], None] | None) -> None:
+        self.problem = problem
+        self.max_iterations = max_iterations
+        self.on_iteration = on_iteration
+        self.history = [rms_before]
+        self.iterations = 0
+
+    # least_squares passes the OptimizeResult to a callback whose one parameter has this name
+    def __call__(self, intermediate_result: OptimizeResult) -> None:
+        self.iterations += 1
+        rms = _rms(self.problem.residuals(intermediate_result.x))
+        self.history.append(rms)
+        if self.on_iteration is not None:
+            self.on_iteration(self.iterations, rms)
+        if self.iterations >= self.max_iterations:
+            raise StopIteration
+
+
+def _solve(problem: _Reprojection, x0: np.ndarray, log: _IterationLog, *, loss: str, f_scale: float,
+           max_iterations: int, jacobian: str,
+           sparsity: np.ndarray | scipy.sparse.spmatrix | None) -> np.ndarray:
+    """The free parameters after ``least_squares``' sparse trust region (``x0`` when none is free)."""
+    if len(x0) == 0:
+        return x0
+    pattern = problem.pattern(sparsity)
+    analytic = jacobian == "analytic"
+    result = least_squares(problem.residuals, x0, jac=problem.jacobian if analytic else "2-point",
+                           jac_sparsity=None if analytic else pattern,
+                           method="trf", x_scale="jac", loss=robust_loss(loss), f_scale=float(f_scale),
+                           tr_solver="lsmr",
+                           max_nfev=4 * int(max_iterations) + 10, callback=log)
+    return result.x
+
+
+def _improved(r0: np.ndarray, r1: np.ndarray, rms_before: float, rms_after: float, *, guard: str,
+              loss: str, f_scale: float) -> bool:
+    """Whether the solve lowered what ``guard`` names: the RMS, or the robust cost minimized."""
+    if guard == "rms":
+        return rms_after < rms_before
+    return bool(np.all(np.isfinite(r1))
+                and _robust_cost(r1, loss, float(f_scale)) < _robust_cost(r0, loss, float(f_scale)))
+
+
+def _unpack_solution(parameters: _Parameters, solution: np.ndarray, K: np.ndarray, R: np.ndarray,
+                     t: np.ndarray,
+                     fixed: list[int]) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """``(R, t, points, K)`` of the solution, back in the input's world; the held cameras' poses are
+    the input's, bit for bit."""
+    full = parameters.expand(solution)
+    block = parameters.camera_block(full)
+    K_out = K.copy()
+    if parameters.per_camera_intrinsics:
+        K_out[:, 0, 0], K_out[:, 1, 1], K_out[:, 0, 2], K_out[:, 1, 2] = block[:, 6:].T
+    elif parameters.intrinsic_params:
+        K_out[0, 0], K_out[1, 1], K_out[0, 2], K_out[1, 2] = parameters.shared_intrinsics(full)
+    R_out = Rotation.from_rotvec(block[:, :3]).as_matrix()
+    t_out = block[:, 3:6] - R_out @ parameters.origin
+    R_out[fixed], t_out[fixed] = R[fixed], t[fixed]
+    return R_out, t_out, parameters.point_block(full) + parameters.origin, K_out
+
+
 def bundle_adjust(K: np.ndarray, R: np.ndarray, t: np.ndarray, points: np.ndarray,
                   camera_indices: np.ndarray, point_indices: np.ndarray, observations: np.ndarray, *,
                   loss: str = "huber", f_scale: float = 1.0, refine_intrinsics: bool = False,
@@ -373,154 +619,29 @@ def bundle_adjust(K: np.ndarray, R: np.ndarray, t: np.ndarray, points: np.ndarra
 
     Reference: Triggs et al., "Bundle adjustment - a modern synthesis" (1999); H&Z appendix A6.3.
     """
-    if loss not in LOSSES:
-        raise InvalidControl("loss", f"unknown loss {loss!r}; losses are {list(LOSSES)}")
-    if not float(f_scale) > 0:
-        raise InvalidControl("f_scale", f"must be positive, got {f_scale}")
-    if int(max_iterations) < 1:
-        raise InvalidControl("max_iterations", f"must be at least 1, got {max_iterations}")
-    if guard not in ("rms", "robust_cost"):
-        raise InvalidControl("guard", f"must be 'rms' or 'robust_cost', got {guard!r}")
-    if jacobian not in ("analytic", "2-point"):
-        raise InvalidControl("jacobian", f"must be 'analytic' or '2-point', got {jacobian!r}")
+    _check_controls(loss, f_scale, max_iterations, guard, jacobian)
     K, R, t, X, cams, pts, obs = _check_inputs(K, R, t, points, camera_indices, point_indices, observations)
-    n, p = len(R), len(X)
-    fixed = sorted({int(c) for c in fixed_cameras})
-    if any(c < 0 or c >= n for c in fixed):
-        raise InvalidControl("fixed_cameras",
-                             f"camera indices must lie in [0, {n}), got {tuple(fixed_cameras)}")
-    shared_K = K.ndim == 2
-    Ks = np.broadcast_to(K, (n, 3, 3))
-    per_camera_intrinsics = refine_intrinsics and not shared_K
-    cp = 10 if per_camera_intrinsics else 6
-    ip = 4 if (refine_intrinsics and shared_K) else 0
-
-    # the full parameter vector and which entries are free
-    camera_block = np.zeros((n, cp))
-    camera_block[:, :3] = matrix_to_rotvec(R)
-    # Work in a world centred on the first held camera: X~ = X - c, t~ = t + R c. The scaling left
-    # by holding that camera is then about the origin, under which every t~ scales exactly, so
-    # holding one entry of a t~ fixes the scale whatever the rotations do (and the result does not
-    # depend on where the world's origin is). Better conditioned, too.
-    origin = -R[fixed[0]].T @ t[fixed[0]] if fixed else np.zeros(3)
-    camera_block[:, 3:6] = t + R @ origin
-    intrinsics_all = np.stack([Ks[:, 0, 0], Ks[:, 1, 1], Ks[:, 0, 2], Ks[:, 1, 2]], axis=1)  # (N, 4)
-    if per_camera_intrinsics:
-        camera_block[:, 6:] = intrinsics_all
-    shared_block = intrinsics_all[0].copy() if ip else np.zeros(0)
-    full0 = np.concatenate([camera_block.ravel(), shared_block, (X - origin).ravel()])
-    free = np.ones(full0.size, dtype=bool)
-    for c in fixed:
-        free[c * cp: c * cp + 6] = False
-    if fix_scale and len(fixed) == 1:
-        column = _scale_gauge_column(R, camera_block[:, 3:6], fixed[0], cams, cp)
-        if column is not None:
-            free[column] = False
-    free_index = np.flatnonzero(free)
-    column_map = np.full(full0.size, -1)
-    column_map[free_index] = np.arange(len(free_index))
-    skews = Ks[:, 0, 1][cams]
-    rows, cols = _jacobian_coordinates(cams, pts, n, camera_params=cp, intrinsic_params=ip)
-    keep = column_map[cols] >= 0
-    jac_rows, jac_cols = rows[keep], column_map[cols[keep]]
-    shape = (2 * len(cams), len(free_index))
-    # the CSR layout of the pattern, once: each iteration only refills the values
-    layout = scipy.sparse.csr_matrix((np.arange(1, len(jac_rows) + 1), (jac_rows, jac_cols)), shape=shape)
-    csr_order, csr_indices, csr_indptr = layout.data - 1, layout.indices, layout.indptr
-
-    def unpack(full: np.ndarray):
-        block = full[: n * cp].reshape(n, cp)
-        if per_camera_intrinsics:
-            intr = block[:, 6:][cams]
-        elif ip:
-            intr = np.broadcast_to(full[n * cp: n * cp + 4], (len(cams), 4))
-        else:
-            intr = intrinsics_all[cams]
-        Xp = full[n * cp + ip:].reshape(p, 3)
-        return block, intr, Xp
-
-    def expand(x_free: np.ndarray) -> np.ndarray:
-        full = full0.copy()
-        full[free_index] = x_free
-        return full
-
-    def residuals(x_free: np.ndarray) -> np.ndarray:
-        block, intr, Xp = unpack(expand(x_free))
-        uv, _ = project_with_jacobians(block[:, :3], block[:, 3:6], Xp[pts], intr, skews, cameras=cams,
-                                       jacobians=False)
-        return (uv - obs).ravel()
-
-    def jac(x_free: np.ndarray) -> scipy.sparse.csr_matrix:
-        block, intr, Xp = unpack(expand(x_free))
-        _, J = project_with_jacobians(block[:, :3], block[:, 3:6], Xp[pts], intr, skews, cameras=cams)
-        parts = [J["rotvec"], J["t"]]
-        if per_camera_intrinsics:
-            parts.append(J["intrinsics"])
-        if ip:
-            parts.append(J["intrinsics"])
-        parts.append(J["point"])
-        values = np.concatenate(parts, axis=2)  # (M, 2, width), the order of _jacobian_coordinates
-        return scipy.sparse.csr_matrix((values[keep][csr_order], csr_indices, csr_indptr), shape=shape)
-
-    x0 = full0[free_index]
-    r0 = residuals(x0)
+    fixed = _check_fixed(fixed_cameras, len(R))
+    parameters = _pack_parameters(K, R, t, X, cams, fixed, refine_intrinsics=refine_intrinsics,
+                                  fix_scale=fix_scale)
+    problem = _Reprojection(parameters, K, cams, pts, obs)
+    x0 = parameters.full[parameters.free]
+    r0 = problem.residuals(x0)
     if not np.all(np.isfinite(r0)):
         raise InvalidValue("points", "some points project to infinity (they lie in a camera's focal plane)")
     rms_before = _rms(r0)
-    history = [rms_before]
-    iteration = [0]
-
-    def callback(intermediate_result) -> None:
-        iteration[0] += 1
-        rms = _rms(residuals(intermediate_result.x))
-        history.append(rms)
-        if on_iteration is not None:
-            on_iteration(iteration[0], rms)
-        if iteration[0] >= int(max_iterations):
-            raise StopIteration
-
-    if len(free_index) == 0:
-        solution = x0
-    else:
-        if sparsity is None:
-            pattern = scipy.sparse.csr_matrix((np.ones(len(jac_rows), dtype=np.int8), (jac_rows, jac_cols)),
-                                              shape=shape)
-        else:
-            given = scipy.sparse.csr_matrix(sparsity)
-            if given.shape != (shape[0], full0.size):
-                raise InvalidValue("sparsity", f"expected shape {(shape[0], full0.size)} "
-                                               "(2 rows per observation, a column per parameter), "
-                                               f"got {given.shape}")
-            pattern = (given[:, free_index] != 0).astype(np.int8)
-        result = least_squares(residuals, x0, jac=jac if jacobian == "analytic" else "2-point",
-                               jac_sparsity=None if jacobian == "analytic" else pattern,
-                               method="trf", x_scale="jac", loss=robust_loss(loss), f_scale=float(f_scale),
-                               tr_solver="lsmr",
-                               max_nfev=4 * int(max_iterations) + 10, callback=callback)
-        solution = result.x
-    r1 = residuals(solution)
+    log = _IterationLog(problem, rms_before, int(max_iterations), on_iteration)
+    solution = _solve(problem, x0, log, loss=loss, f_scale=f_scale, max_iterations=max_iterations,
+                      jacobian=jacobian, sparsity=sparsity)
+    r1 = problem.residuals(solution)
     rms_after = _rms(r1) if np.all(np.isfinite(r1)) else np.inf
-    K_out = K.copy()
-    if guard == "rms":
-        worse = not rms_after < rms_before
-    else:
-        worse = not (np.all(np.isfinite(r1))
-                     and _robust_cost(r1, loss, float(f_scale)) < _robust_cost(r0, loss, float(f_scale)))
-    if worse:
-        return BundleResult(R=R.copy(), t=t.copy(), points=X.copy(), K=K_out, rms_before=rms_before,
-                            rms_after=rms_before, cost_history=np.array(history), iterations=iteration[0],
-                            improved=False)
-    block, _, Xp = unpack(expand(solution))
-    if per_camera_intrinsics:
-        K_out[:, 0, 0], K_out[:, 1, 1], K_out[:, 0, 2], K_out[:, 1, 2] = block[:, 6:].T
-    elif ip:
-        K_out[0, 0], K_out[1, 1], K_out[0, 2], K_out[1, 2] = expand(solution)[n * cp: n * cp + 4]
-    R_out = Rotation.from_rotvec(block[:, :3]).as_matrix()
-    t_out = block[:, 3:6] - R_out @ origin
-    R_out[fixed], t_out[fixed] = R[fixed], t[fixed]  # bit-exact for the held cameras
-    return BundleResult(R=R_out, t=t_out, points=Xp + origin, K=K_out, rms_before=rms_before,
-                        rms_after=rms_after, cost_history=np.array(history), iterations=iteration[0],
-                        improved=True)
+    if not _improved(r0, r1, rms_before, rms_after, guard=guard, loss=loss, f_scale=f_scale):
+        return BundleResult(R=R.copy(), t=t.copy(), points=X.copy(), K=K.copy(), rms_before=rms_before,
+                            rms_after=rms_before, cost_history=np.array(log.history),
+                            iterations=log.iterations, improved=False)
+    R_out, t_out, X_out, K_out = _unpack_solution(parameters, solution, K, R, t, fixed)
+    return BundleResult(R=R_out, t=t_out, points=X_out, K=K_out, rms_before=rms_before, rms_after=rms_after,
+                        cost_history=np.array(log.history), iterations=log.iterations, improved=True)
 
 
 def bundle_adjust_progress(*args, **kwargs) -> Generator[tuple[int, float], None, BundleResult]:
