@@ -8,18 +8,20 @@ message that says what was expected and a hint that says what to fix.
 from __future__ import annotations
 
 import ast
+import tomllib
 from pathlib import Path
 
 import pytest
 
-from lab.lessons.format import LessonCatalog, load_lesson
+from lab.lessons.format import LessonCatalog, load_lesson, step_signature
 from lab.lessons.grader import grade
 
 from lesson_helpers import FIXTURES, REPO, SUBMISSIONS
 
 SEED = 7
 
-LESSON_FOLDERS = [REPO / "lessons" / i for i in LessonCatalog(REPO / "lessons").ids()] + [FIXTURES / "lessons" / "00-toy"]
+LESSON_FOLDERS = ([REPO / "lessons" / i for i in LessonCatalog(REPO / "lessons").ids()]
+                  + [FIXTURES / "lessons" / "00-toy"])
 
 
 def lesson_name(folder: Path) -> str:
@@ -63,6 +65,22 @@ def test_reference_full_marks_and_starter_zero(lessons, folder):
     assert all(t.status == "failed" and "NotImplementedError" in t.output for t in starter.tests)
 
 
+@pytest.mark.parametrize("folder", LESSON_FOLDERS, ids=lambda f: f.name)
+def test_every_lesson_writes_each_fact_once(lessons, folder):
+    """Signatures come from the steps, points from the checks, and every hint is defined once and used."""
+    lesson = lessons[folder]
+    assert lesson.warnings == ()
+    raw = tomllib.loads((folder / "tasks.toml").read_text())
+    for task, table in zip(lesson.tasks, raw["tasks"], strict=True):
+        assert "signature" not in table and "points" not in table
+        assert task.signature == step_signature(lesson.pipeline.step(task.step))
+        assert task.points == sum(c.points for c in task.checks)
+        for check in table["checks"]:
+            assert all(isinstance(name, str) for name in check.get("hints", []))
+    named = {rule.name for task in lesson.tasks for check in task.checks for rule in check.hints}
+    assert set(raw.get("hints", {})) <= named
+
+
 @pytest.mark.parametrize("folder,fixture", CASES, ids=[f"{f.name}-{p.stem}" for f, p in CASES])
 def test_wrong_implementation_loses_exactly_its_checks(lessons, folder, fixture):
     lesson = lessons[folder]
@@ -74,5 +92,6 @@ def test_wrong_implementation_loses_exactly_its_checks(lessons, folder, fixture)
     assert set(lost) == expected
     assert report.score == lesson.points - sum(t.max_score for t in lost.values())
     for test in lost.values():
-        assert "Failed:" in test.output and ("Expected:" in test.output or "the reference gets" in test.output)
+        assert "Failed:" in test.output
+        assert "Expected:" in test.output or "the reference gets" in test.output
         assert "\nHint: " in test.output, f"{test.name}: no hint says what to fix (a detector or mistakes.py)"
