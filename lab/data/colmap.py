@@ -47,7 +47,8 @@ def _repr(value: float) -> str:
 
 
 def _to_colmap_pixel(value: float) -> str:
-    """``value + 0.5`` as the shortest decimal that :func:`_from_colmap_pixel` maps back to ``value`` exactly."""
+    """``value + 0.5`` as the shortest decimal that :func:`_from_colmap_pixel` maps back to ``value``
+    exactly."""
     value = float(value)
     candidate = repr(value + 0.5)
     if float(_CONTEXT.subtract(decimal.Decimal(candidate), _HALF)) == value:
@@ -66,8 +67,8 @@ def _from_colmap_pixel(text: str) -> float:
 
 def _check_name(name: str) -> None:
     if any(ch.isspace() for ch in name):
-        raise InvalidValue("names", f"COLMAP's images.txt separates fields by spaces: image name {name!r} has "
-                                    f"whitespace")
+        raise InvalidValue("names", f"COLMAP's images.txt separates fields by spaces: image name {name!r} "
+                                    f"has whitespace")
 
 
 def write_colmap_text(folder: str | Path, model: SparseModel) -> Path:
@@ -102,11 +103,12 @@ def write_colmap_text(folder: str | Path, model: SparseModel) -> Path:
     camera_ids: dict[tuple, int] = {}
     camera_lines = []
     image_camera = []
-    for K, (width, height) in zip(rec.K, rec.sizes):
+    for K, (width, height) in zip(rec.K, rec.sizes, strict=True):
         key = (int(width), int(height), float(K[0, 0]), float(K[1, 1]), float(K[0, 2]), float(K[1, 2]))
         if key not in camera_ids:
             camera_ids[key] = len(camera_ids) + 1
-            camera_lines.append(f"{camera_ids[key]} PINHOLE {key[0]} {key[1]} {_repr(key[2])} {_repr(key[3])} "
+            camera_lines.append(f"{camera_ids[key]} PINHOLE {key[0]} {key[1]} {_repr(key[2])} "
+                                f"{_repr(key[3])} "
                                 f"{_to_colmap_pixel(key[4])} {_to_colmap_pixel(key[5])}")
         image_camera.append(camera_ids[key])
     (target / "cameras.txt").write_text(
@@ -120,7 +122,8 @@ def write_colmap_text(folder: str | Path, model: SparseModel) -> Path:
     lines = ["# Image list with two lines of data per image:",
              "#   IMAGE_ID, QW, QX, QY, QZ, TX, TY, TZ, CAMERA_ID, NAME",
              "#   POINTS2D[] as (X, Y, POINT3D_ID)",
-             f"# Number of images: {len(rec)}, mean observations per image: {observations / max(len(rec), 1)}",
+             f"# Number of images: {len(rec)}, mean observations per image: "
+             f"{observations / max(len(rec), 1)}",
              "# (lab) a line '# R r00 ... r22' before an image gives its rotation matrix exactly"]
     for i in range(len(rec)):
         qx, qy, qz, qw = quaternions[i]
@@ -128,17 +131,17 @@ def write_colmap_text(folder: str | Path, model: SparseModel) -> Path:
         lines.append(" ".join([str(i + 1), _repr(qw), _repr(qx), _repr(qy), _repr(qz),
                                *(_repr(v) for v in rec.t[i]), str(image_camera[i]), rec.names[i]]))
         lines.append(" ".join(f"{_to_colmap_pixel(u)} {_to_colmap_pixel(v)} {p}"
-                              for (u, v), p in zip(keypoints[i], point_of[i])))
+                              for (u, v), p in zip(keypoints[i], point_of[i], strict=True)))
     (target / "images.txt").write_text("\n".join(lines) + "\n")
 
     lines = ["# 3D point list with one line of data per point:",
              "#   POINT3D_ID, X, Y, Z, R, G, B, ERROR, TRACK[] as (IMAGE_ID, POINT2D_IDX)",
              f"# Number of points: {len(rec.points)}, mean track length: {rec.mean_track_length}"]
     for j in range(len(rec.points)):
-        track = " ".join(f"{image + 1} {keypoint}" for image, keypoint in tracks[j])
+        elements = " ".join(f"{image + 1} {keypoint}" for image, keypoint in tracks[j])
         lines.append(" ".join([str(j + 1), *(_repr(v) for v in rec.points[j]),
                                *(str(int(c)) for c in rec.colors[j]), _repr(rec.errors[j])])
-                     + (" " + track if track else ""))
+                     + (" " + elements if elements else ""))
     (target / "points3D.txt").write_text("\n".join(lines) + "\n")
     return target
 
@@ -175,7 +178,8 @@ def _read_cameras(path: Path) -> dict[int, tuple[np.ndarray, tuple[int, int]]]:
         except (ValueError, IndexError):
             raise source.error(number, "expected CAMERA_ID MODEL WIDTH HEIGHT PARAMS[]") from None
         if model not in models:
-            raise source.error(number, f"camera model {model} is not supported; supported are {sorted(models)}")
+            raise source.error(number,
+                               f"camera model {model} is not supported; supported are {sorted(models)}")
         count, focal_at, centre_at, distortion_at = models[model]
         if len(params) != count:
             raise source.error(number, f"{model} has {count} parameters, got {len(params)}")
@@ -188,9 +192,10 @@ def _read_cameras(path: Path) -> dict[int, tuple[np.ndarray, tuple[int, int]]]:
         if width < 1 or height < 1 or not fx > 0 or not fy > 0:
             raise source.error(number, f"camera {camera_id} needs a positive size and focal length")
         if any(distortion):
-            raise source.error(number, f"camera {camera_id} ({model}) has lens distortion {distortion}, which a "
-                                       f"SparseModel does not carry: undistort the images first "
-                                       f"(colmap image_undistorter)")
+            raise source.error(number,
+                               f"camera {camera_id} ({model}) has lens distortion {distortion}, which a "
+                               f"SparseModel does not carry: undistort the images first "
+                               f"(colmap image_undistorter)")
         if camera_id in cameras:
             raise source.error(number, f"camera id {camera_id} appears twice")
         K = np.array([[fx, 0.0, cx], [0.0, fy, cy], [0.0, 0.0, 1.0]])
@@ -225,7 +230,8 @@ def read_colmap_text(folder: str | Path) -> SparseModel:
         number += 1
         if line.startswith(_ROTATION_TAG):
             try:
-                pending_rotation = np.array([float(v) for v in line[len(_ROTATION_TAG):].split()]).reshape(3, 3)
+                entries = [float(v) for v in line[len(_ROTATION_TAG):].split()]
+                pending_rotation = np.array(entries).reshape(3, 3)
             except ValueError:
                 pending_rotation = None
             continue
@@ -241,7 +247,8 @@ def read_colmap_text(folder: str | Path) -> SparseModel:
         except (ValueError, IndexError):
             raise source.error(number, "expected IMAGE_ID QW QX QY QZ TX TY TZ CAMERA_ID NAME") from None
         if len(fields) != 10:
-            raise source.error(number, f"expected 10 fields, got {len(fields)} (image names cannot contain spaces)")
+            raise source.error(number,
+                               f"expected 10 fields, got {len(fields)} (image names cannot contain spaces)")
         if camera_id not in cameras:
             raise source.error(number, f"camera id {camera_id} is not in cameras.txt")
         if image_id in images:
@@ -296,9 +303,11 @@ def read_colmap_text(folder: str | Path) -> SparseModel:
                 raise points_source.error(number, f"image id {image_id} is not in images.txt")
             image = images[image_id]
             if not 0 <= keypoint < len(image[4]) or image[5][keypoint] != point_id:
-                raise points_source.error(number, f"observation ({image_id}, {keypoint}) does not match images.txt "
-                                                  f"(POINT3D_ID there: "
-                                                  f"{image[5][keypoint] if 0 <= keypoint < len(image[5]) else 'none'})")
+                raise points_source.error(number,
+                                          f"observation ({image_id}, {keypoint}) does not match images.txt "
+                                          f"(POINT3D_ID there: "
+                                          f"{image[5][keypoint] if 0 <= keypoint < len(image[5]) else 'none'}"
+                                          ")")
             converted[k] = (index_of[image_id], keypoint)
         points[point_id] = (xyz, rgb, error, converted)
     point_order = sorted(points)
@@ -317,4 +326,4 @@ def read_colmap_text(folder: str | Path) -> SparseModel:
     )
 
 
-__all__ = ["write_colmap_text", "read_colmap_text"]
+__all__ = ["read_colmap_text", "write_colmap_text"]

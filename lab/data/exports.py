@@ -123,7 +123,8 @@ def write_opencv_calibration(path: str | Path, K: np.ndarray, dist: np.ndarray, 
     if K.shape != (3, 3) or not np.all(np.isfinite(K)):
         raise InvalidValue("K", f"expected a finite (3, 3) camera matrix, got shape {K.shape}")
     if dist.size not in (4, 5, 8, 12, 14) or not np.all(np.isfinite(dist)):
-        raise InvalidValue("dist", f"expected 4, 5, 8, 12 or 14 finite distortion coefficients, got {dist.size}")
+        raise InvalidValue("dist",
+                           f"expected 4, 5, 8, 12 or 14 finite distortion coefficients, got {dist.size}")
     if int(image_width) < 1 or int(image_height) < 1:
         raise InvalidValue("image_size", f"must be positive, got {image_width}x{image_height}")
     extrinsics = None
@@ -133,7 +134,7 @@ def write_opencv_calibration(path: str | Path, K: np.ndarray, dist: np.ndarray, 
         if rotations.shape != (len(translations), 3, 3):
             raise InvalidValue("rotations", f"expected ({len(translations)}, 3, 3), got {rotations.shape}")
         extrinsics = np.array([np.concatenate([cv2.Rodrigues(R)[0].ravel(), t])
-                               for R, t in zip(rotations, translations)]).reshape(-1, 6)
+                               for R, t in zip(rotations, translations, strict=True)]).reshape(-1, 6)
     target = Path(path)
     target.parent.mkdir(parents=True, exist_ok=True)
     storage = cv2.FileStorage(str(target), cv2.FILE_STORAGE_WRITE | cv2.FILE_STORAGE_FORMAT_YAML)
@@ -141,8 +142,10 @@ def write_opencv_calibration(path: str | Path, K: np.ndarray, dist: np.ndarray, 
         raise InvalidValue("out", f"cannot open {str(target)!r} for writing")
     try:
         storage.write("calibration_time", time.strftime("%a %b %d %H:%M:%S %Y"))
-        if per_view_reprojection_errors is not None or extrinsics is not None:
-            storage.write("nframes", len(per_view_reprojection_errors if extrinsics is None else extrinsics))
+        if extrinsics is not None:
+            storage.write("nframes", len(extrinsics))
+        elif per_view_reprojection_errors is not None:
+            storage.write("nframes", len(per_view_reprojection_errors))
         storage.write("image_width", int(image_width))
         storage.write("image_height", int(image_height))
         if board_width is not None and board_height is not None:
@@ -178,7 +181,8 @@ def read_opencv_calibration(path: str | Path) -> OpenCVCalibration:
     try:
         storage = cv2.FileStorage(str(source), cv2.FILE_STORAGE_READ)
     except cv2.error as exc:
-        raise InvalidValue("path", f"{str(source)!r} is not an OpenCV YAML/XML/JSON file ({exc.err})") from None
+        raise InvalidValue("path",
+                           f"{str(source)!r} is not an OpenCV YAML/XML/JSON file ({exc.err})") from None
     try:
         K = storage.getNode("camera_matrix").mat()
         dist = storage.getNode("distortion_coefficients").mat()
@@ -196,5 +200,7 @@ def read_opencv_calibration(path: str | Path) -> OpenCVCalibration:
         storage.release()
 
 
-__all__ = ["VALUE_FORMATS", "write_value", "RECONSTRUCTION_FORMATS", "file_names", "write_reconstruction",
-           "OpenCVCalibration", "write_opencv_calibration", "read_opencv_calibration"]
+__all__ = [
+    "RECONSTRUCTION_FORMATS", "VALUE_FORMATS", "OpenCVCalibration", "file_names", "read_opencv_calibration",
+    "write_opencv_calibration", "write_reconstruction", "write_value",
+]

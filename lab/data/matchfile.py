@@ -77,7 +77,8 @@ def _files(source: str | Path | Iterable[str | Path]) -> list[tuple[int, Path]]:
     for path in paths:
         found = _NAME.search(path.name)
         if not found or int(found.group(1)) < 1:
-            raise InvalidValue("path", f"{str(path)!r} is not named matching<i>.txt (i >= 1, the image it is about)")
+            raise InvalidValue("path",
+                               f"{str(path)!r} is not named matching<i>.txt (i >= 1, the image it is about)")
         if not path.is_file():
             raise InvalidValue("path", f"no such file: {str(path)!r}")
         out.append((int(found.group(1)) - 1, path))
@@ -90,11 +91,12 @@ def _files(source: str | Path | Iterable[str | Path]) -> list[tuple[int, Path]]:
 def _parse(path: Path, image: int) -> list[tuple[tuple[int, int, int], list[tuple[int, float, float]]]]:
     """Rows of one file: (colour, [(image, u, v), ...] starting with this image's own pixel)."""
     lines = path.read_text().splitlines()
-    if not lines or not _HEADER.match(lines[0]):
+    header = _HEADER.match(lines[0]) if lines else None
+    if header is None:
         raise _error(path, 1, f"the first line must be 'nFeatures: N', got {lines[0][:40]!r}" if lines
                      else "the file is empty; the first line must be 'nFeatures: N'")
-    expected = int(_HEADER.match(lines[0]).group(1))
-    rows = []
+    expected = int(header.group(1))
+    rows: list[tuple[tuple[int, int, int], list[tuple[int, float, float]]]] = []
     for number, line in enumerate(lines[1:], start=2):
         fields = line.split()
         if not fields:
@@ -103,7 +105,7 @@ def _parse(path: Path, image: int) -> list[tuple[tuple[int, int, int], list[tupl
             raise _error(path, number, f"more feature rows than the {expected} that nFeatures announces")
         try:
             count = int(fields[0])
-            colour = tuple(int(v) for v in fields[1:4])
+            colour = (int(fields[1]), int(fields[2]), int(fields[3]))
             u, v = float(fields[4]), float(fields[5])
         except (ValueError, IndexError):
             raise _error(path, number, "expected 'm R G B u v' then (image id, u, v) per match") from None
@@ -126,15 +128,19 @@ def _parse(path: Path, image: int) -> list[tuple[tuple[int, int, int], list[tupl
             if other < 0:
                 raise _error(path, number, f"image ids are 1-based, got {other + 1}")
         if any(other == image for other, _, _ in observations[1:]):
-            raise _error(path, number, f"a feature of image {image + 1} cannot match image {image + 1} itself")
+            raise _error(path, number,
+                         f"a feature of image {image + 1} cannot match image {image + 1} itself")
         rows.append((colour, observations))
     if len(rows) != expected:
-        raise _error(path, len(lines), f"nFeatures announces {expected} features but the file has {len(rows)}")
+        raise _error(path, len(lines),
+                     f"nFeatures announces {expected} features but the file has {len(rows)}")
     return rows
 
 
-def read_match_files(source: str | Path | Iterable[str | Path], *, num_images: int | None = None) -> MatchFiles:
-    """Read ``matching<i>.txt`` files (a folder of them, one file, or a list) into keypoints, matches and tracks.
+def read_match_files(source: str | Path | Iterable[str | Path], *,
+                     num_images: int | None = None) -> MatchFiles:
+    """Read ``matching<i>.txt`` files (a folder of them, one file, or a list) into keypoints, matches and
+    tracks.
 
     Args:
         source: a folder (every ``matching<i>.txt`` in it), one file or a list of files; the
@@ -154,13 +160,14 @@ def read_match_files(source: str | Path | Iterable[str | Path], *, num_images: i
     total = largest + 1 if num_images is None else int(num_images)
     if total < 1:
         raise InvalidValue("num_images", f"must be positive, got {num_images}")
-    for image, path, rows in parsed:
+    for image, path, _ in parsed:
         if image >= total:
-            raise InvalidValue("num_images", f"{path.name} is about image {image + 1} but there are {total} images")
+            raise InvalidValue("num_images",
+                               f"{path.name} is about image {image + 1} but there are {total} images")
     index: list[dict[tuple[float, float], int]] = [{} for _ in range(total)]
     colours: list[list[tuple[int, int, int]]] = [[] for _ in range(total)]
     edges: list[tuple[int, int, int, int]] = []  # (image a, keypoint a, image b, keypoint b)
-    for image, path, rows in parsed:
+    for _, path, rows in parsed:
         for row_number, (colour, observations) in enumerate(rows):
             ids = []
             for other, u, v in observations:
@@ -182,7 +189,8 @@ def read_match_files(source: str | Path | Iterable[str | Path], *, num_images: i
             pairs.setdefault((a, b), []).append((ka, kb))
         else:
             pairs.setdefault((b, a), []).append((kb, ka))
-    matches = {pair: np.unique(np.array(rows, dtype=np.int64), axis=0) for pair, rows in sorted(pairs.items())}
+    matches = {pair: np.unique(np.array(rows, dtype=np.int64), axis=0)
+               for pair, rows in sorted(pairs.items())}
 
     offsets = np.concatenate([[0], np.cumsum([len(k) for k in keypoints])])
     nodes = int(offsets[-1])
@@ -190,8 +198,8 @@ def read_match_files(source: str | Path | Iterable[str | Path], *, num_images: i
     inconsistent = 0
     if edges:
         e = np.array(edges, dtype=np.int64)
-        u, w = offsets[e[:, 0]] + e[:, 1], offsets[e[:, 2]] + e[:, 3]
-        graph = scipy.sparse.coo_matrix((np.ones(len(e)), (u, w)), shape=(nodes, nodes))
+        first, second = offsets[e[:, 0]] + e[:, 1], offsets[e[:, 2]] + e[:, 3]
+        graph = scipy.sparse.coo_matrix((np.ones(len(e)), (first, second)), shape=(nodes, nodes))
         _, labels = connected_components(graph, directed=False)
         node_image = np.repeat(np.arange(total), np.diff(offsets))
         node_keypoint = np.arange(nodes) - offsets[node_image]

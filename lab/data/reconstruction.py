@@ -13,8 +13,10 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 from dataclasses import dataclass
+from itertools import pairwise
 
 import numpy as np
+from numpy.typing import ArrayLike
 
 from lab.core.errors import InvalidValue
 from lab.core.values import Cameras, PointCloud, Points2D
@@ -24,8 +26,8 @@ def _array(value: object, name: str, shape: tuple[int | None, ...], dtype: type)
     try:
         array = np.asarray(value)
         if dtype is np.uint8:
-            if array.size and (not np.issubdtype(array.dtype, np.integer) and not np.all(array == np.round(array))
-                               or array.min() < 0 or array.max() > 255):
+            integral = np.issubdtype(array.dtype, np.integer) or bool(np.all(array == np.round(array)))
+            if array.size and (not integral or array.min() < 0 or array.max() > 255):
                 raise InvalidValue(name, "colours must be integers in [0, 255]")
         elif dtype is np.int64 and array.size and not np.issubdtype(array.dtype, np.integer) \
                 and not (np.all(np.isfinite(array)) and np.all(array == np.round(array))):
@@ -33,7 +35,8 @@ def _array(value: object, name: str, shape: tuple[int | None, ...], dtype: type)
         array = array.astype(dtype)
     except (TypeError, ValueError) as exc:
         raise InvalidValue(name, f"cannot be read as a {np.dtype(dtype).name} array: {exc}") from None
-    if array.ndim != len(shape) or any(want is not None and got != want for got, want in zip(array.shape, shape)):
+    if array.ndim != len(shape) or any(want is not None and got != want
+                                       for got, want in zip(array.shape, shape, strict=True)):
         pretty = ", ".join("*" if s is None else str(s) for s in shape)
         raise InvalidValue(name, f"expected shape ({pretty}), got {array.shape}")
     if array.dtype.kind == "f" and not np.all(np.isfinite(array)):
@@ -107,7 +110,8 @@ class SparseModel:
             raise InvalidValue("K", "a model has at least one view")
         if not np.all(np.isclose(K[:, 2], (0.0, 0.0, 1.0))) or np.any(K[:, 1, 0] != 0.0) \
                 or np.any(K[:, 0, 0] <= 0) or np.any(K[:, 1, 1] <= 0):
-            raise InvalidValue("K", "every K must be [[fx, s, cx], [0, fy, cy], [0, 0, 1]] with positive focal lengths")
+            raise InvalidValue("K", "every K must be [[fx, s, cx], [0, fy, cy], [0, 0, 1]] with positive "
+                                    "focal lengths")
         set_(self, "K", K)
         set_(self, "poses", _array(self.poses, "poses", (v, 3, 4), np.float64))
         set_(self, "registered", _array(self.registered, "registered", (v,), np.bool_))
@@ -202,7 +206,7 @@ class SparseModel:
         kp, views, point = kp[sort], views[sort], point[sort]
         bounds = np.searchsorted(point, np.arange(len(self.points) + 1))
         return tuple(np.column_stack([views[s:e], local[kp[s:e]]]).astype(np.int64).reshape(-1, 2)
-                     for s, e in zip(bounds[:-1], bounds[1:]))
+                     for s, e in pairwise(bounds))
 
     # --- as drawn -------------------------------------------------------------------------------
     def cameras(self, *, image: str = "", colors: np.ndarray | None = None) -> Cameras:
@@ -221,15 +225,16 @@ class SparseModel:
         return PointCloud(self.points, self.colors / 255.0)
 
     def observation_pixels(self, *, image: str = "") -> Points2D:
-        """Every observation's pixel, ``view`` its view and ``ids`` its point (drawn on image set ``image``)."""
+        """Every observation's pixel, ``view`` its view and ``ids`` its point (drawn on the image set
+        ``image``)."""
         kp, views, point = self.observations()
         return Points2D(self.keypoints.xy[kp], view=views, ids=point, image=image)
 
     # --- the interchange form -------------------------------------------------------------------
     @classmethod
-    def from_tracks(cls, K: object, sizes: object, R: object, t: object, names: Sequence[str],
-                    keypoints: Sequence[object], points: object, colors: object, errors: object,
-                    tracks: Sequence[object]) -> SparseModel:
+    def from_tracks(cls, K: ArrayLike, sizes: ArrayLike, R: ArrayLike, t: ArrayLike, names: Sequence[str],
+                    keypoints: Sequence[ArrayLike], points: ArrayLike, colors: ArrayLike, errors: ArrayLike,
+                    tracks: Sequence[ArrayLike]) -> SparseModel:
         """A model of registered views from the form files hold: per view its keypoints ``(K_i, 2)``,
         per point its track of ``(view, keypoint index within the view)`` rows.
 
@@ -243,7 +248,8 @@ class SparseModel:
         t = _array(t, "t", (n, 3), np.float64)
         keypoints = tuple(keypoints)
         if len(keypoints) != n:
-            raise InvalidValue("keypoints", f"expected {n} keypoint arrays (one per image), got {len(keypoints)}")
+            raise InvalidValue("keypoints",
+                               f"expected {n} keypoint arrays (one per image), got {len(keypoints)}")
         per_view = [_array(k, f"keypoints[{i}]", (None, 2), np.float64) for i, k in enumerate(keypoints)]
         counts = np.array([len(k) for k in per_view], dtype=np.int64)
         offsets = np.concatenate([[0], np.cumsum(counts)]).astype(np.int64)
@@ -269,15 +275,17 @@ class SparseModel:
         if len(twice):
             first, second = order[twice[0]], order[twice[0] + 1]
             raise InvalidValue("tracks", f"keypoint {rows[first, 1]} of image {rows[first, 0]} is in tracks "
-                                         f"{owner[first]} and {owner[second]}: a keypoint observes one 3D point "
-                                         f"(COLMAP allows one 3D point per keypoint)")
+                                         f"{owner[first]} and {owner[second]}: a keypoint observes one 3D "
+                                         "point (COLMAP allows one 3D point per keypoint)")
         track_of = np.full(int(offsets[-1]), -1, dtype=np.int64)
         track_of[index] = owner
         return cls(K=K, poses=np.concatenate([R, t[:, :, None]], axis=2), registered=np.ones(n, dtype=bool),
-                   names=tuple(names), sizes=sizes, keypoints=Points2D(xy, view=np.repeat(np.arange(n), counts),
-                                                                       image=""),
-                   track_of=track_of, observed=track_of >= 0, points=points, point_tracks=np.arange(len(points)),
-                   colors=colors, errors=errors)
+                   names=tuple(names), sizes=_array(sizes, "sizes", (n, 2), np.int64),
+                   keypoints=Points2D(xy, view=np.repeat(np.arange(n), counts), image=""),
+                   track_of=track_of, observed=track_of >= 0, points=points,
+                   point_tracks=np.arange(len(points)),
+                   colors=_array(colors, "colors", (len(points), 3), np.uint8),
+                   errors=_array(errors, "errors", (len(points),), np.float64))
 
     def compact(self) -> SparseModel:
         """The model as a file holds it (:meth:`from_tracks`): the registered views only, each keypoint with
@@ -300,8 +308,9 @@ class SparseModel:
             return False
         pairs = [(self.K, other.K), (self.poses, other.poses), (self.registered, other.registered),
                  (self.sizes, other.sizes), (self.keypoints.xy, other.keypoints.xy), (self.view, other.view),
-                 (self.track_of, other.track_of), (self.observed, other.observed), (self.points, other.points),
-                 (self.point_tracks, other.point_tracks), (self.colors, other.colors), (self.errors, other.errors)]
+                 (self.track_of, other.track_of), (self.observed, other.observed),
+                 (self.points, other.points), (self.point_tracks, other.point_tracks),
+                 (self.colors, other.colors), (self.errors, other.errors)]
         if mine is not None and theirs is not None:
             pairs.append((mine, theirs))
         return all(a.dtype == b.dtype and a.shape == b.shape and np.array_equal(a, b) for a, b in pairs)

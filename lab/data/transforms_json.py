@@ -38,10 +38,11 @@ _PINHOLE_MODELS = ("OPENCV", "PINHOLE", "SIMPLE_PINHOLE")
 
 
 def camera_to_world_opengl(R: np.ndarray, t: np.ndarray) -> np.ndarray:
-    """OpenGL camera-to-world ``(N, 4, 4)`` of world-to-camera OpenCV poses ``R`` ``(N, 3, 3)``, ``t`` ``(N, 3)``."""
+    """OpenGL camera-to-world ``(N, 4, 4)`` of world-to-camera OpenCV poses ``R`` ``(N, 3, 3)``,
+    ``t`` ``(N, 3)``."""
     R = np.asarray(R, dtype=np.float64)
     t = np.asarray(t, dtype=np.float64)
-    c2w = np.zeros(R.shape[:-2] + (4, 4))
+    c2w = np.zeros((*R.shape[:-2], 4, 4))
     c2w[..., :3, :3] = np.swapaxes(R, -1, -2)
     c2w[..., :3, 3] = -np.einsum("...ji,...j->...i", R, t)
     c2w[..., 3, 3] = 1.0
@@ -50,7 +51,8 @@ def camera_to_world_opengl(R: np.ndarray, t: np.ndarray) -> np.ndarray:
 
 def write_transforms_json(path: str | Path, model: SparseModel, *, image_folder: str = "images",
                           points_ply: str | None = None) -> Path:
-    """Write the registered cameras of ``model`` as a nerfstudio / instant-ngp ``transforms.json`` at ``path``.
+    """Write the registered cameras of ``model`` as a nerfstudio / instant-ngp ``transforms.json`` at
+    ``path``.
 
     Args:
         path: the file to write (parent folders are created).
@@ -70,7 +72,8 @@ def write_transforms_json(path: str | Path, model: SparseModel, *, image_folder:
     if np.any(rec_K[:, 0, 1] != 0.0):
         raise InvalidValue("K", "transforms.json has no skew, but K[0, 1] != 0 for some image")
     intrinsics = [{"fl_x": float(K[0, 0]), "fl_y": float(K[1, 1]), "cx": float(K[0, 2]) + 0.5,
-                   "cy": float(K[1, 2]) + 0.5, "w": int(w), "h": int(h)} for K, (w, h) in zip(rec_K, rec_sizes)]
+                   "cy": float(K[1, 2]) + 0.5, "w": int(w), "h": int(h)}
+                  for K, (w, h) in zip(rec_K, rec_sizes, strict=True)]
     shared = all(entry == intrinsics[0] for entry in intrinsics)
     data: dict = {"camera_model": "OPENCV"}
     if shared and intrinsics:
@@ -110,11 +113,13 @@ def _intrinsics(frame: dict, top: dict, where: str) -> tuple[np.ndarray, tuple[i
     def get(key: str):
         return frame[key] if key in frame else top.get(key)
 
-    merged = {key: get(key) for key in ("fl_x", "fl_y", "cx", "cy", "w", "h", "camera_angle_x", "camera_angle_y",
-                                        "camera_model", *_DISTORTION_KEYS) if get(key) is not None}
+    keys = ("fl_x", "fl_y", "cx", "cy", "w", "h", "camera_angle_x", "camera_angle_y", "camera_model",
+            *_DISTORTION_KEYS)
+    merged = {key: get(key) for key in keys if get(key) is not None}
     model = merged.get("camera_model", "OPENCV")
     if model not in _PINHOLE_MODELS:
-        raise InvalidValue(where, f"camera_model {model!r} is not a pinhole model ({', '.join(_PINHOLE_MODELS)})")
+        raise InvalidValue(where,
+                           f"camera_model {model!r} is not a pinhole model ({', '.join(_PINHOLE_MODELS)})")
     distortion = {key: merged[key] for key in _DISTORTION_KEYS if key in merged}
     if any(_number(merged, key, where) != 0.0 for key in distortion):
         raise InvalidValue(where, f"the camera has lens distortion {distortion}: undistort the images first "
@@ -145,7 +150,8 @@ def _intrinsics(frame: dict, top: dict, where: str) -> tuple[np.ndarray, tuple[i
     return K, (int(w), int(h))
 
 
-def read_transforms_json(path: str | Path) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, tuple[str, ...]]:
+def read_transforms_json(path: str | Path) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray,
+                                                    tuple[str, ...]]:
     """Read a nerfstudio / instant-ngp ``transforms.json`` into the lab's conventions.
 
     Returns ``K`` ``(N, 3, 3)`` (principal point moved by -0.5 px to the lab's pixel centres),
@@ -177,9 +183,12 @@ def read_transforms_json(path: str | Path) -> tuple[np.ndarray, np.ndarray, np.n
         try:
             matrix = np.asarray(frame["transform_matrix"], dtype=np.float64)
         except (TypeError, ValueError):
-            raise InvalidValue(where, "transform_matrix must be a 4 x 4 (or 3 x 4) array of numbers") from None
+            raise InvalidValue(where,
+                               "transform_matrix must be a 4 x 4 (or 3 x 4) array of numbers") from None
         if matrix.shape not in ((4, 4), (3, 4)) or not np.all(np.isfinite(matrix)):
-            raise InvalidValue(where, f"transform_matrix must be a finite 4 x 4 (or 3 x 4) matrix, got {matrix.shape}")
+            raise InvalidValue(where,
+                               "transform_matrix must be a finite 4 x 4 (or 3 x 4) matrix, got "
+                               f"{matrix.shape}")
         c2w_gl = np.eye(4)
         c2w_gl[:3] = matrix[:3]
         c2w = c2w_gl @ OPENCV_TO_OPENGL  # the flip is its own inverse
@@ -196,4 +205,4 @@ def read_transforms_json(path: str | Path) -> tuple[np.ndarray, np.ndarray, np.n
     return np.array(Ks), np.array(sizes, dtype=np.int64), np.array(Rs), np.array(ts), tuple(names)
 
 
-__all__ = ["OPENCV_TO_OPENGL", "camera_to_world_opengl", "write_transforms_json", "read_transforms_json"]
+__all__ = ["OPENCV_TO_OPENGL", "camera_to_world_opengl", "read_transforms_json", "write_transforms_json"]

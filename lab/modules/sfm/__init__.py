@@ -1,4 +1,5 @@
-"""Incremental structure from motion: many photos in, cameras and a sparse point cloud out, one image at a time.
+"""Incremental structure from motion: many photos in, cameras and a sparse point cloud out, one image at a
+time.
 
 The classical incremental pipeline (Schönberger and Frahm, "Structure-from-Motion Revisited", CVPR
 2016, the COLMAP paper, section 3), as steps (:mod:`lab.modules.sfm.steps`):
@@ -43,13 +44,16 @@ State names (float64 unless said; V views, N keypoints, P points):
     K                   (V, 3, 3)         camera matrix of each view (dataset)
     keypoints           Points2D          SIFT keypoints of every view (``view``), coloured from the images
     descriptors         (N, 128) float32  one descriptor per keypoint
-    matches             (M, 4) int        ``(view a, view b, keypoint a, keypoint b)``, a < b, global keypoint indices
+    matches             (M, 4) int        ``(view a, view b, keypoint a, keypoint b)``, a < b, global keypoint
+                                          indices
     inlier_matches      (M', 4) int       the matches consistent with their pair's F
-    view_graph          (G, 5)            per verified pair: view a, view b, matches, inliers, median angle (deg)
+    view_graph          (G, 5)            per verified pair: view a, view b, matches, inliers, median angle
+                                          (deg)
     pair_poses          (G, 3, 4)         each verified pair's relative pose ``[R | t]`` (|t| = 1)
     track_of            (N,) int          the track of each keypoint (-1: none)
     initial_pair        (2,) int          the two views the reconstruction starts from
-    initial_pose        (3, 4)            ``[R | t]`` of the second initial view (the first is the world frame)
+    initial_pose        (3, 4)            ``[R | t]`` of the second initial view (the first is the world
+                                          frame)
     initial_model_dlt   SparseModel       the two-view model, points by linear triangulation
     initial_model       SparseModel       the two-view model, points by non-linear triangulation
     model               SparseModel       the incremental model (its ``track_of``: the tracks continued,
@@ -65,8 +69,9 @@ from __future__ import annotations
 
 from lab.core import Pipeline
 from lab.data.reconstruction import SparseModel
-from lab.modules.sfm.datasets import (FOCAL_GUESS_FACTOR, camera_path, check_intrinsics, exif_focal_px, match_files,
-                                      matches_from_match_files, photos, read_k_matrix, rendered, scene_extent)
+from lab.modules.sfm.datasets import (FOCAL_GUESS_FACTOR, camera_path, check_intrinsics, exif_focal_px,
+                                      match_files, matches_from_match_files, photos, read_k_matrix, rendered,
+                                      scene_extent)
 from lab.modules.sfm.evaluate import align_poses, evaluate_initial, evaluate_model, pose_errors, umeyama
 from lab.modules.sfm.export import EXPORTED_MODEL, EXPORTS
 from lab.modules.sfm.model import GrowingModel, error_colors
@@ -89,33 +94,30 @@ VIEWS = ("model", "filtered_model", "adjusted_model")
 PIPELINE = Pipeline.build(
     name="sfm",
     title="Structure from motion",
-    summary="Many photos in, cameras and a sparse point cloud out: features and matches for all pairs, geometric "
-            "verification and the view graph, the initial pair and its pose from E, linear and non-linear "
-            "triangulation, then register -> triangulate -> bundle adjust one image at a time, a final bundle "
-            "adjustment and filtering.",
-    steps=[detect_all_features, match_all_pairs, verify_pairs, build_tracks, choose_initial_pair, initialize_pose,
-           triangulate_initial, refine_initial_points, reconstruct_incrementally, filter_points, bundle_adjust_all],
+    summary="Many photos in, cameras and a sparse point cloud out: features and matches for all pairs, "
+            "geometric verification and the view graph, the initial pair and its pose from E, linear and "
+            "non-linear triangulation, then register -> triangulate -> bundle adjust one image at a time, "
+            "filtering and a final bundle adjustment.",
+    steps=[detect_all_features, match_all_pairs, verify_pairs, build_tracks, choose_initial_pair,
+           initialize_pose, triangulate_initial, refine_initial_points, reconstruct_incrementally,
+           filter_points, bundle_adjust_all],
     datasets=[rendered, photos, match_files],
-    evaluations={"initialize_pose": evaluate_initial, "refine_initial_points": evaluate_model("initial_model"),
+    evaluations={"initialize_pose": evaluate_initial,
+                 "refine_initial_points": evaluate_model("initial_model"),
                  "reconstruct_incrementally": evaluate_model("model"),
                  "bundle_adjust_all": evaluate_model("adjusted_model")},
     exports=EXPORTS,
     views=VIEWS,
 )
 
-__all__ = ["PIPELINE", "MODEL_STAGES", "VIEWS", "EXPORTS", "EXPORTED_MODEL", "PNP_MINIMUM", "SIFT_OFFSET_PX",
-           "RegistrationFailed", "SparseModel",
-           # steps and their results, in pipeline order
-           "detect_all_features", "Features", "match_all_pairs", "PairMatches", "verify_pairs", "VerifiedPairs",
-           "build_tracks", "Tracks", "choose_initial_pair", "InitialPair", "initialize_pose", "InitialPose",
-           "triangulate_initial", "InitialPoints", "refine_initial_points", "InitialModel",
-           "reconstruct_incrementally", "IncrementalModel", "filter_points", "FilteredModel", "bundle_adjust_all",
-           "AdjustedModel",
-           # the math the steps use, by topic
-           "image_pairs", "split_inconsistent", "unit_descriptors", "GrowingModel", "keypoint_trees",
-           "complete_and_merge", "error_colors",
-           # datasets and what they are made of
-           "rendered", "photos", "match_files", "camera_path", "scene_extent", "check_intrinsics", "read_k_matrix",
-           "exif_focal_px", "matches_from_match_files", "FOCAL_GUESS_FACTOR",
-           # comparisons with the truth
-           "umeyama", "align_poses", "pose_errors"]
+__all__ = [
+    "EXPORTED_MODEL", "EXPORTS", "FOCAL_GUESS_FACTOR", "MODEL_STAGES", "PIPELINE", "PNP_MINIMUM",
+    "SIFT_OFFSET_PX", "VIEWS", "AdjustedModel", "Features", "FilteredModel", "GrowingModel",
+    "IncrementalModel", "InitialModel", "InitialPair", "InitialPoints", "InitialPose", "PairMatches",
+    "RegistrationFailed", "SparseModel", "Tracks", "VerifiedPairs", "align_poses", "build_tracks",
+    "bundle_adjust_all", "camera_path", "check_intrinsics", "choose_initial_pair", "complete_and_merge",
+    "detect_all_features", "error_colors", "exif_focal_px", "filter_points", "image_pairs", "initialize_pose",
+    "keypoint_trees", "match_all_pairs", "match_files", "matches_from_match_files", "photos", "pose_errors",
+    "read_k_matrix", "reconstruct_incrementally", "refine_initial_points", "rendered", "scene_extent",
+    "split_inconsistent", "triangulate_initial", "umeyama", "unit_descriptors", "verify_pairs",
+]

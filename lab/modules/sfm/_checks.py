@@ -39,8 +39,9 @@ def check_matches(value: Any, name: str, keypoints: Points2D) -> np.ndarray:
     """``(M, 4)`` int64 rows ``(view a, view b, keypoint a, keypoint b)`` with keypoints in range."""
     m = np.asarray(value)
     if m.ndim != 2 or m.shape[1] != 4 or (len(m) and not np.issubdtype(m.dtype, np.integer)):
-        raise InvalidValue(name, f"expected (M, 4) integer rows (view a, view b, keypoint a, keypoint b), got "
-                                 f"{m.shape} {m.dtype}")
+        raise InvalidValue(name,
+                           f"expected (M, 4) integer rows (view a, view b, keypoint a, keypoint b), got "
+                           f"{m.shape} {m.dtype}")
     m = m.astype(np.int64)
     if len(m) and (m[:, 2:].min() < 0 or m[:, 2:].max() >= len(keypoints)):
         raise InvalidValue(name, f"keypoint indices must lie in [0, {len(keypoints)})")
@@ -50,9 +51,11 @@ def check_matches(value: Any, name: str, keypoints: Points2D) -> np.ndarray:
 def check_pair(initial_pair: Any, views: int) -> tuple[int, int]:
     """The two different views ``(a, b)`` of ``initial_pair``."""
     pair = np.asarray(initial_pair).reshape(-1)
-    if pair.shape != (2,) or not np.issubdtype(pair.dtype, np.integer) or pair.min() < 0 or pair.max() >= views \
+    if pair.shape != (2,) or not np.issubdtype(pair.dtype, np.integer) or pair.min() < 0 \
+            or pair.max() >= views \
             or pair[0] == pair[1]:
-        raise InvalidValue("initial_pair", f"expected two different image indices in [0, {views}), got {pair}")
+        raise InvalidValue("initial_pair",
+                           f"expected two different image indices in [0, {views}), got {pair}")
     return int(pair[0]), int(pair[1])
 
 
@@ -68,7 +71,8 @@ def check_descriptors(descriptors: Any, keypoints: Points2D) -> np.ndarray:
     """``(N, D)`` descriptors, one row per keypoint."""
     descriptors = np.asarray(descriptors)
     if descriptors.ndim != 2 or len(descriptors) != len(keypoints):
-        raise InvalidValue("descriptors", f"expected one row per keypoint ({len(keypoints)}), got {descriptors.shape}")
+        raise InvalidValue("descriptors",
+                           f"expected one row per keypoint ({len(keypoints)}), got {descriptors.shape}")
     return descriptors
 
 

@@ -36,7 +36,7 @@ FOCAL_GUESS_FACTOR = 1.2
 
 
 def check_intrinsics(K: np.ndarray, images: ImageSet, *, name: str = "K") -> np.ndarray:
-    """``K`` as ``(V, 3, 3)`` float64, checked against the images; raises :class:`InvalidValue` naming the misfit.
+    """``K`` as ``(V, 3, 3)`` float64, checked against the images; :class:`InvalidValue` names the misfit.
 
     A ``(3, 3)`` matrix is shared by all views. Each K must be ``[[fx, s, cx], [0, fy, cy], [0, 0, 1]]``
     with positive focal lengths and its principal point inside its image (a K calibrated at another
@@ -48,21 +48,24 @@ def check_intrinsics(K: np.ndarray, images: ImageSet, *, name: str = "K") -> np.
     if K.shape == (3, 3):
         K = np.broadcast_to(K, (len(images), 3, 3)).copy()
     if K.shape != (len(images), 3, 3):
-        raise InvalidValue(name, f"expected one camera matrix per image, ({len(images)}, 3, 3), got {K.shape}")
+        raise InvalidValue(name,
+                           f"expected one camera matrix per image, ({len(images)}, 3, 3), got {K.shape}")
     if not np.all(np.isfinite(K)):
         raise InvalidValue(name, "contains NaN or infinite entries")
-    for i, (k, image) in enumerate(zip(K, images.images)):
+    for i, (k, image) in enumerate(zip(K, images.images, strict=True)):
         label = f"K of image {i} ({images.names[i]})"
         if not np.allclose(k[2], (0.0, 0.0, 1.0)) or k[1, 0] != 0 or k[0, 0] <= 0 or k[1, 1] <= 0:
-            raise InvalidValue(name, f"{label} must be [[fx, s, cx], [0, fy, cy], [0, 0, 1]] with positive focal "
-                                     f"lengths")
+            raise InvalidValue(name,
+                               f"{label} must be [[fx, s, cx], [0, fy, cy], [0, 0, 1]] with positive focal "
+                               f"lengths")
         w, h = image.width, image.height
         cx, cy = k[0, 2], k[1, 2]
         if not (-0.5 <= cx <= w - 0.5 and -0.5 <= cy <= h - 0.5) or abs(cx - (w - 1) / 2) > 0.25 * w \
                 or abs(cy - (h - 1) / 2) > 0.25 * h:
-            raise InvalidValue(name, f"{label} does not fit the {w}x{h} image: its principal point ({cx:.1f}, "
-                                     f"{cy:.1f}) is far from the image centre ({(w - 1) / 2:.1f}, {(h - 1) / 2:.1f}) "
-                                     "(was it calibrated at another resolution?)")
+            raise InvalidValue(name,
+                               f"{label} does not fit the {w}x{h} image: its principal point ({cx:.1f}, "
+                               f"{cy:.1f}) is far from the image centre ({(w - 1) / 2:.1f}, "
+                               f"{(h - 1) / 2:.1f}) (was it calibrated at another resolution?)")
     return K
 
 
@@ -81,8 +84,8 @@ def camera_path(scene: str = "room", path: str = "orbit", *, num_views: int = 12
         cameras = orbit_cameras(world, num_views=int(num_views), arc_deg=float(arc_deg), fx=fx, width=width,
                                 height=height)
     elif path == "forward":
-        cameras = forward_cameras(num_views=int(num_views), step=float(step), scene=world, turn_deg=float(turn_deg),
-                                  fx=fx, width=width, height=height)
+        cameras = forward_cameras(num_views=int(num_views), step=float(step), scene=world,
+                                  turn_deg=float(turn_deg), fx=fx, width=width, height=height)
     else:
         raise InvalidValue("path", f"must be 'orbit' or 'forward', got {path!r}")
     return world, cameras
@@ -96,16 +99,17 @@ def scene_extent(centers: np.ndarray) -> float:
     return float(np.max(np.linalg.norm(centers[:, None] - centers[None], axis=2)))
 
 
-def rendered(*, scene: Literal["room", "table", "facade"] = "room", path: Literal["orbit", "forward"] = "orbit",
-             num_views: Annotated[int, Range(2, 30)] = 12,
+def rendered(*, scene: Literal["room", "table", "facade"] = "room",
+             path: Literal["orbit", "forward"] = "orbit", num_views: Annotated[int, Range(2, 30)] = 12,
              arc_deg: Annotated[float, Range(5.0, 360.0)] = 120.0,
              step: Annotated[float, Range(0.01, 2.0)] = 0.2,
              turn_deg: Annotated[float, Range(-10.0, 10.0)] = 1.0,
              width: Annotated[int, Range(64, 2048)] = 640, height: Annotated[int, Range(48, 2048)] = 480,
              fov_deg: Annotated[float, Range(20.0, 120.0)] = 60.0,
              noise: Annotated[float, Range(0.0, 0.2)] = 0.005,
-             supersample: Annotated[int, Range(1, 4)] = 2, seed: Annotated[int, Range(0, None)] = 0) -> Loaded:
-    """Photographs of a textured 3D scene (:mod:`lab.data.scenes`) from known cameras along a path, with exact depth.
+             supersample: Annotated[int, Range(1, 4)] = 2,
+             seed: Annotated[int, Range(0, None)] = 0) -> Loaded:
+    """Photographs of a textured 3D scene (:mod:`lab.data.scenes`) from known cameras on a path, exact depth.
 
     "orbit": views on an arc of ``arc_deg`` degrees about the scene's vertical axis through its
     centre, starting at its ``home`` viewpoint, all looking at the centre
@@ -136,7 +140,8 @@ def rendered(*, scene: Literal["room", "table", "facade"] = "room", path: Litera
     from lab.data.scenes import render
 
     check_dataset_pixels(views=num_views, width=width, height=height)
-    world, cameras = camera_path(scene, path, num_views=num_views, arc_deg=arc_deg, step=step, turn_deg=turn_deg,
+    world, cameras = camera_path(scene, path, num_views=num_views, arc_deg=arc_deg, step=step,
+                                 turn_deg=turn_deg,
                                  width=int(width), height=int(height), fov_deg=fov_deg, seed=seed)
     rng = np.random.default_rng([int(seed), 23])
     images, depth = [], []
@@ -151,8 +156,9 @@ def rendered(*, scene: Literal["room", "table", "facade"] = "room", path: Litera
     true_cameras = Cameras(K, cameras.R, cameras.t, cameras.width, cameras.height, image="images")
     truth = {"cameras": true_cameras, "R": cameras.R.copy(), "t": cameras.t.copy(), "K": K.copy(),
              "depth": np.stack(depth), "scene_size": scene_extent(cameras.centers)}
-    description = (f"Rendered {scene!r} (seed {seed}) from {len(cameras)} cameras on a {path} path, {width}x{height} "
-                   f"px, {fov_deg:g} degree field of view, pixel noise {noise:g}; exact K, poses and depth")
+    description = (f"Rendered {scene!r} (seed {seed}) from {len(cameras)} cameras on a {path} path, "
+                   f"{width}x{height} px, {fov_deg:g} degree field of view, pixel noise {noise:g}; exact K, "
+                   "poses and depth")
     return Loaded({"images": ImageSet(tuple(images)), "K": K}, truth, description)
 
 
@@ -179,8 +185,9 @@ def read_k_matrix(file: str) -> np.ndarray:
         if len(values) == 3:
             rows.append(values)
     if len(rows) < 3:
-        raise InvalidValue("k_file", f"{os.path.basename(file)!r} must hold the three rows of K (three numbers each), "
-                                     f"found {len(rows)}")
+        raise InvalidValue("k_file",
+                           f"{os.path.basename(file)!r} must hold the three rows of K (three numbers each), "
+                           f"found {len(rows)}")
     return np.array(rows[-3:], dtype=np.float64)
 
 
@@ -198,6 +205,8 @@ def exif_focal_px(file: str, width: int, height: int) -> float | None:
             sub = exif.get_ifd(0x8769) if hasattr(exif, "get_ifd") else {}
             f35 = sub.get(41989) or exif.get(41989)
     except Exception:  # not an image Pillow reads, no EXIF: no guess from it
+        return None
+    if f35 is None:
         return None
     try:
         f35 = float(f35)
@@ -263,8 +272,9 @@ def photos(*, path: str, pattern: str = "*", k_file: str = "", fx: Annotated[flo
     check_folder(path)
     files = list_images(path, pattern)
     if len(files) < 2:
-        raise InvalidValue("path", f"folder {path!r} holds {len(files)} images matching {pattern!r}; structure from "
-                                   "motion needs at least two")
+        raise InvalidValue("path",
+                           f"folder {path!r} holds {len(files)} images matching {pattern!r}; structure from "
+                           "motion needs at least two")
     originals = read_images(files)
     images, scales = _resized(originals, files, int(max_side))
     Ks = []
@@ -275,21 +285,22 @@ def photos(*, path: str, pattern: str = "*", k_file: str = "", fx: Annotated[flo
         Ks = [_scaled(K, s) for s in scales]
         source = f"K from {k_file}"
     elif fx > 0:
-        for image, s in zip(originals, scales):
+        for image, s in zip(originals, scales, strict=True):
             K = _intrinsics(fx, fy if fy > 0 else fx, cx if cx >= 0 else (image.width - 1) / 2,
                             cy if cy >= 0 else (image.height - 1) / 2)
             Ks.append(_scaled(K, s))
         source = "K from the options"
     else:
         from_exif = 0
-        for file, image in zip(files, images):
+        for file, image in zip(files, images, strict=True):
             focal = exif_focal_px(file, image.width, image.height)
             from_exif += focal is not None
             focal = FOCAL_GUESS_FACTOR * max(image.width, image.height) if focal is None else focal
             Ks.append(_intrinsics(focal, focal, (image.width - 1) / 2, (image.height - 1) / 2))
-        source = (f"K GUESSED, not calibrated: the focal length from the EXIF 35 mm equivalent for {from_exif} of "
-                  f"{len(images)} photos, else {FOCAL_GUESS_FACTOR} x the longer side, principal point at the centre "
-                  "(poses and points are approximate; give k_file or fx for a calibrated reconstruction)")
+        source = (f"K GUESSED, not calibrated: the focal length from the EXIF 35 mm equivalent for "
+                  f"{from_exif} of {len(images)} photos, else {FOCAL_GUESS_FACTOR} x the longer side, "
+                  "principal point at the centre (poses and points are approximate; give k_file or fx for a "
+                  "calibrated reconstruction)")
     image_set = ImageSet(tuple(images))
     K = check_intrinsics(np.stack(Ks), image_set)
     description = f"{len(images)} photos from {path}; {source}"
@@ -300,7 +311,7 @@ def photos(*, path: str, pattern: str = "*", k_file: str = "", fx: Annotated[flo
 # The course's match files
 # ----------------------------------------------------------------------------------------------------
 def matches_from_match_files(match_files: MatchFiles) -> tuple[Points2D, np.ndarray]:
-    """The keypoints and pairwise matches of a :class:`lab.data.matchfile.MatchFiles` in the SfM module's form.
+    """The keypoints and pairwise matches of :class:`lab.data.matchfile.MatchFiles` in the SfM module's form.
 
     Returns ``keypoints`` (Points2D: every image's keypoints in image order, ``view`` per point,
     colours in [0, 1]) and ``matches`` ``(M, 4)`` int64 rows ``(view a, view b, keypoint a,
@@ -310,8 +321,10 @@ def matches_from_match_files(match_files: MatchFiles) -> tuple[Points2D, np.ndar
     offsets = np.concatenate([[0], np.cumsum(counts)]).astype(np.int64)
     xy = np.concatenate([np.asarray(k, dtype=np.float64).reshape(-1, 2) for k in match_files.keypoints])
     view = np.repeat(np.arange(len(counts)), counts)
-    colors = np.concatenate([np.asarray(c, dtype=np.float64).reshape(-1, 3) for c in match_files.colors]) / 255.0
-    rows = [np.column_stack([np.full(len(m), a), np.full(len(m), b), offsets[a] + m[:, 0], offsets[b] + m[:, 1]])
+    colors = np.concatenate([np.asarray(c, dtype=np.float64).reshape(-1, 3)
+                             for c in match_files.colors]) / 255.0
+    rows = [np.column_stack([np.full(len(m), a), np.full(len(m), b), offsets[a] + m[:, 0],
+                             offsets[b] + m[:, 1]])
             for (a, b), m in sorted(match_files.matches.items()) if len(m)]
     matches = np.concatenate(rows).astype(np.int64) if rows else np.zeros((0, 4), dtype=np.int64)
     return Points2D(xy, view=view, colors=colors, image="images"), matches
@@ -345,10 +358,12 @@ def match_files(*, path: str, pattern: str = "*", k_file: str = "calibration.txt
     keypoints, matches = matches_from_match_files(found)
     state = dict(loaded.state, keypoints=keypoints, matches=matches)
     description = (f"{loaded.description}; {len(keypoints)} keypoints and {len(matches)} matches from "
-                   f"{len(found.sources)} match files ({found.inconsistent_tracks} inconsistent tracks dropped by the "
-                   "reader); start at verify_pairs")
+                   f"{len(found.sources)} match files ({found.inconsistent_tracks} inconsistent tracks "
+                   "dropped by the reader); start at verify_pairs")
     return Loaded(state, {}, description)
 
 
-__all__ = ["rendered", "photos", "match_files", "camera_path", "scene_extent", "check_intrinsics", "read_k_matrix",
-           "exif_focal_px", "matches_from_match_files", "FOCAL_GUESS_FACTOR"]
+__all__ = [
+    "FOCAL_GUESS_FACTOR", "camera_path", "check_intrinsics", "exif_focal_px", "match_files",
+    "matches_from_match_files", "photos", "read_k_matrix", "rendered", "scene_extent",
+]

@@ -16,9 +16,11 @@ from lab.geometry.rotations import nearest_rotation, rotation_angle_deg
 
 
 def umeyama(source: np.ndarray, target: np.ndarray) -> tuple[float, np.ndarray, np.ndarray]:
-    """The similarity ``target ~ s Q source + d`` of least squared error (Umeyama 1991): ``(s, Q (3, 3), d (3,))``.
+    """The similarity ``target ~ s Q source + d`` of least squared error (Umeyama 1991):
+    ``(s, Q (3, 3), d (3,))``.
 
-    Centre both sets, ``Sigma = T_c^T S_c / n``, ``U D V^T = svd(Sigma)``, ``Q = U diag(1, 1, det(U V^T)) V^T``,
+    Centre both sets, ``Sigma = T_c^T S_c / n``, ``U D V^T = svd(Sigma)``,
+    ``Q = U diag(1, 1, det(U V^T)) V^T``,
     ``s = trace(diag(D) diag(1, 1, +-1)) / var(S)``, ``d = mean(T) - s Q mean(S)``. Corresponds to
     scikit-image's ``SimilarityTransform.estimate`` (which calls ``_umeyama``).
 
@@ -73,7 +75,8 @@ def pose_errors(R_est: np.ndarray, t_est: np.ndarray, R_true: np.ndarray, t_true
             "center_error_rel": float(center.mean()), "center_error_max_rel": float(center.max())}
 
 
-def registered_pose_errors(poses: np.ndarray, registered: np.ndarray, truth: dict[str, Any]) -> dict[str, float]:
+def registered_pose_errors(poses: np.ndarray, registered: np.ndarray,
+                           truth: dict[str, Any]) -> dict[str, float]:
     """:func:`pose_errors` of the registered views of ``poses`` ``(V, 3, 4)`` (none with fewer than two)."""
     reg = np.flatnonzero(registered)
     if len(reg) < 2:
@@ -83,7 +86,8 @@ def registered_pose_errors(poses: np.ndarray, registered: np.ndarray, truth: dic
 
 
 def evaluate_model(name: str) -> Callable[[dict[str, Any], dict[str, Any]], dict[str, float]]:
-    """An evaluation of the registered cameras of the model in state ``name`` (:func:`registered_pose_errors`)."""
+    """An evaluation of the registered cameras of the model in state ``name``
+    (:func:`registered_pose_errors`)."""
 
     def evaluate(state: dict[str, Any], truth: dict[str, Any]) -> dict[str, float]:
         if not truth or "R" not in truth or name not in state:

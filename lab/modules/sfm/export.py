@@ -22,15 +22,18 @@ Writer = Callable[[Mapping[str, Any], Mapping[str, Mapping[str, Any]], Path], Pa
 
 
 def exported_model(state: Mapping[str, Any]) -> SparseModel:
-    """The model the exports write (``adjusted_model``); :class:`MissingInput` before bundle_adjust_all ran."""
+    """The model the exports write (``adjusted_model``); :class:`MissingInput` before bundle_adjust_all
+    ran."""
     model = state.get(EXPORTED_MODEL)
     if model is None:
-        raise MissingInput(EXPORTED_MODEL, "no bundle-adjusted reconstruction yet: run bundle_adjust_all first")
+        raise MissingInput(EXPORTED_MODEL,
+                           "no bundle-adjusted reconstruction yet: run bundle_adjust_all first")
     return model
 
 
 def writer(fmt: str) -> Writer:
-    """``write(state, metrics, out)`` in format ``fmt``, a key of :data:`lab.data.exports.RECONSTRUCTION_FORMATS`."""
+    """``write(state, metrics, out)`` in format ``fmt``, a key of
+    :data:`lab.data.exports.RECONSTRUCTION_FORMATS`."""
 
     def write(state: Mapping[str, Any], metrics: Mapping[str, Mapping[str, Any]], out: Path) -> Path:
         return write_reconstruction(out, exported_model(state), fmt)
@@ -43,7 +46,8 @@ def writer(fmt: str) -> Writer:
 EXPORTS = (
     Export("colmap", "the bundle-adjusted reconstruction as a COLMAP text model: cameras.txt, images.txt and "
                      "points3D.txt in the folder out", (EXPORTED_MODEL,), writer("colmap")),
-    Export("transforms-json", "the bundle-adjusted cameras as a nerfstudio / instant-ngp transforms.json (OpenGL "
-                              "camera-to-world) at the file out, frames at images/<name>", (EXPORTED_MODEL,),
+    Export("transforms-json",
+           "the bundle-adjusted cameras as a nerfstudio / instant-ngp transforms.json (OpenGL "
+           "camera-to-world) at the file out, frames at images/<name>", (EXPORTED_MODEL,),
            writer("transforms-json")),
 )

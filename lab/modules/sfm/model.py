@@ -67,9 +67,10 @@ class GrowingModel:
 
     @classmethod
     def of(cls, model: SparseModel) -> GrowingModel:
-        """A growing copy of ``model`` (its tracks ``model.track_of`` stay apart: copy them to change them)."""
-        return cls(model.poses.copy(), model.registered.copy(), model.points.copy(), model.point_tracks.copy(),
-                   model.observed.copy())
+        """A growing copy of ``model`` (its tracks ``model.track_of`` stay apart: copy them to change
+        them)."""
+        return cls(model.poses.copy(), model.registered.copy(), model.points.copy(),
+                   model.point_tracks.copy(), model.observed.copy())
 
     def point_of_track(self, num_tracks: int) -> np.ndarray:
         """The point of every track ``(T,)`` (-1: none)."""
@@ -78,15 +79,16 @@ class GrowingModel:
         out[self.point_tracks] = np.arange(len(self.point_tracks))
         return out
 
-    def observations(self, keypoints: Points2D, track_of: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    def observations(self, keypoints: Points2D,
+                     track_of: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """``(keypoint index, view, point index)`` of every usable observation of a reconstructed point
         (:func:`lab.data.reconstruction.observations_of`)."""
         return observations_of(keypoint_views(keypoints), track_of, self.point_tracks, self.registered,
                                self.observed)
 
     def copy(self) -> GrowingModel:
-        return GrowingModel(self.poses.copy(), self.registered.copy(), self.points.copy(), self.point_tracks.copy(),
-                            self.observed.copy())
+        return GrowingModel(self.poses.copy(), self.registered.copy(), self.points.copy(),
+                            self.point_tracks.copy(), self.observed.copy())
 
 
 def project(model: GrowingModel, K: np.ndarray, views: np.ndarray, points: np.ndarray,
@@ -99,8 +101,8 @@ def project(model: GrowingModel, K: np.ndarray, views: np.ndarray, points: np.nd
     return uv, Xc[:, 2]
 
 
-def observation_errors(model: GrowingModel, K: np.ndarray, keypoints: Points2D, kp: np.ndarray, views: np.ndarray,
-                       points: np.ndarray, X: np.ndarray | None = None) -> np.ndarray:
+def observation_errors(model: GrowingModel, K: np.ndarray, keypoints: Points2D, kp: np.ndarray,
+                       views: np.ndarray, points: np.ndarray, X: np.ndarray | None = None) -> np.ndarray:
     """Reprojection error (px) of each observation ``(keypoint, view, point)`` (the point at ``X`` when
     given); ``inf`` behind the camera."""
     uv, depth = project(model, K, views, points, X)
@@ -129,8 +131,8 @@ def point_errors(model: GrowingModel, K: np.ndarray, keypoints: Points2D, track_
     return np.where(counts > 0, sums / np.maximum(counts, 1), 0.0)
 
 
-def freeze(model: GrowingModel, track_of: np.ndarray, K: np.ndarray, keypoints: Points2D, names: tuple[str, ...],
-           sizes: np.ndarray) -> SparseModel:
+def freeze(model: GrowingModel, track_of: np.ndarray, K: np.ndarray, keypoints: Points2D,
+           names: tuple[str, ...], sizes: np.ndarray) -> SparseModel:
     """The growing ``model`` with its tracks ``track_of`` as a :class:`SparseModel` (copies), with each
     point's colour (the mean over its observations) and reprojection error (:func:`point_errors`)."""
     colors = np.round(255 * np.clip(point_colors(keypoints, model, track_of), 0, 1)).astype(np.uint8)
@@ -140,6 +142,7 @@ def freeze(model: GrowingModel, track_of: np.ndarray, K: np.ndarray, keypoints: 
                        errors=point_errors(model, K, keypoints, track_of))
 
 
-def refreeze(model: GrowingModel, track_of: np.ndarray, like: SparseModel, K: np.ndarray | None = None) -> SparseModel:
+def refreeze(model: GrowingModel, track_of: np.ndarray, like: SparseModel,
+             K: np.ndarray | None = None) -> SparseModel:
     """:func:`freeze` with the images (names, sizes), keypoints and, unless given, ``K`` of ``like``."""
     return freeze(model, track_of, like.K if K is None else K, like.keypoints, like.names, like.sizes)

@@ -1,4 +1,4 @@
-"""Image pairs: which pairs are matched, where a pair's matches are, and how much parallax a verified pair has."""
+"""Image pairs: which are matched, where a pair's matches are, how much parallax a verified pair has."""
 
 from __future__ import annotations
 

@@ -1,4 +1,5 @@
-"""The incremental loop: register the next image, triangulate what it completes, bundle adjust, grow the tracks.
+"""The incremental loop: register the next image, triangulate what it completes, bundle adjust, grow the
+tracks.
 
 :class:`Incremental` holds the loop's state (the growing model, its tracks, what was tried and
 measured); :meth:`Incremental.run` is the loop of :func:`~lab.modules.sfm.reconstruct_incrementally`
@@ -67,8 +68,8 @@ class TrackGrowth:
     max_descriptor_distance: float
 
 
-def bundle(model: GrowingModel, K: np.ndarray, keypoints: Points2D, track_of: np.ndarray, anchor: int, *, loss: str,
-           f_scale: float, max_iterations: int, refine_intrinsics: bool = False,
+def bundle(model: GrowingModel, K: np.ndarray, keypoints: Points2D, track_of: np.ndarray, anchor: int, *,
+           loss: str, f_scale: float, max_iterations: int, refine_intrinsics: bool = False,
            ) -> Generator[tuple[int, float], None, tuple[BundleResult, np.ndarray, np.ndarray]]:
     """Bundle adjustment of the model in place (yields ``(iteration, rms)``; returns the BundleResult, the
     registered views and their K)."""
@@ -83,8 +84,8 @@ def bundle(model: GrowingModel, K: np.ndarray, keypoints: Points2D, track_of: np
     if refine_intrinsics and np.allclose(K_sub, K_sub[0]):
         K_sub = K_sub[0]
     result = yield from bundle_adjust_progress(
-        K_sub, model.poses[cams, :, :3], model.poses[cams, :, 3], model.points[used], local[views], point_local[point],
-        keypoints.xy[kp], loss=loss, f_scale=f_scale, refine_intrinsics=refine_intrinsics,
+        K_sub, model.poses[cams, :, :3], model.poses[cams, :, 3], model.points[used], local[views],
+        point_local[point], keypoints.xy[kp], loss=loss, f_scale=f_scale, refine_intrinsics=refine_intrinsics,
         fixed_cameras=(int(local[anchor]),), max_iterations=max_iterations)
     model.poses[cams] = poses_matrix(result.R, result.t)
     model.points[used] = result.points
@@ -94,7 +95,8 @@ def bundle(model: GrowingModel, K: np.ndarray, keypoints: Points2D, track_of: np
 
 def reject_outliers(model: GrowingModel, K: np.ndarray, keypoints: Points2D, track_of: np.ndarray,
                     max_error_px: float) -> int:
-    """Stop using observations whose error exceeds ``max_error_px``; drop points left with < 2. Returns drops."""
+    """Stop using observations whose error exceeds ``max_error_px``; drop points left with < 2. Returns
+    the observations dropped."""
     kp, views, point = model.observations(keypoints, track_of)
     errors = observation_errors(model, K, keypoints, kp, views, point)
     bad = errors > max_error_px
@@ -107,8 +109,8 @@ def reject_outliers(model: GrowingModel, K: np.ndarray, keypoints: Points2D, tra
     return int(bad.sum())
 
 
-def triangulate_new(model: GrowingModel, K: np.ndarray, keypoints: Points2D, track_of: np.ndarray, tried: np.ndarray,
-                    *, min_angle_deg: float, max_error_px: float,
+def triangulate_new(model: GrowingModel, K: np.ndarray, keypoints: Points2D, track_of: np.ndarray,
+                    tried: np.ndarray, *, min_angle_deg: float, max_error_px: float,
                     min_track_length: int = 2) -> tuple[int, float, float]:
     """Triangulate the tracks with two or more registered observations and no point yet (DLT, then LM).
 
@@ -211,7 +213,8 @@ class Incremental:
 
     def __post_init__(self) -> None:
         num_tracks = int(self.track_of.max()) + 1 if len(self.track_of) and self.track_of.max() >= 0 else 0
-        self.tried = np.zeros(num_tracks, dtype=np.int64)  # observations each track had when last triangulated
+        # the observations each track had when it was last triangulated
+        self.tried = np.zeros(num_tracks, dtype=np.int64)
         _, _, point = self.model.observations(self.keypoints, self.track_of)
         self.tried[self.model.point_tracks] = np.bincount(point, minlength=len(self.model.points))
 
@@ -232,10 +235,12 @@ class Incremental:
             failures[:] = 0
             added = self.triangulate()
             self.step += 1
-            yield Progress(self.step, None, self.nonlinear_rms[-1], f"registered {self.names[best]} (image {best}): "
-                                                                    f"{registered} PnP inliers, {added} new points",
+            yield Progress(self.step, None, self.nonlinear_rms[-1],
+                           f"registered {self.names[best]} (image {best}): "
+                           f"{registered} PnP inliers, {added} new points",
                            values=preview())
-            if self.adjustment.iterations > 0 and self.model.registered.sum() >= self.adjustment.growth * adjusted_at:
+            grown = self.model.registered.sum() >= self.adjustment.growth * adjusted_at
+            if self.adjustment.iterations > 0 and grown:
                 adjusted_at = int(self.model.registered.sum())
                 yield from self.adjust(best)
             self.grow_tracks(rounds=1)
@@ -244,7 +249,8 @@ class Incremental:
         if len(self.order) == 0 and not self.model.registered.all():
             names = "; ".join(f"{self.names[v]} (image {v}): {self.reasons.get(int(v), 'not connected')}"
                               for v in np.flatnonzero(~self.model.registered))
-            raise RegistrationFailed("images", f"no image could be registered beyond the initial pair: {names}")
+            raise RegistrationFailed("images",
+                                     f"no image could be registered beyond the initial pair: {names}")
 
     def next_view(self, failures: np.ndarray) -> int:
         """The unregistered view that sees most reconstructed points through its tracks, at least
@@ -256,8 +262,8 @@ class Incremental:
                 continue
             kp, _ = correspondences_2d3d(self.model, self.keypoints, self.track_of, int(v))
             if len(kp) < minimum:
-                self.reasons[int(v)] = (f"sees only {len(kp)} reconstructed points through its tracks (at least "
-                                        f"{minimum} are needed for PnP)")
+                self.reasons[int(v)] = (f"sees only {len(kp)} reconstructed points through its tracks (at "
+                                        f"least {minimum} are needed for PnP)")
                 continue
             if len(kp) > best_count:
                 best, best_count = int(v), len(kp)
@@ -294,7 +300,8 @@ class Incremental:
         """Triangulate the tracks the registration completed; returns the new points."""
         options = self.triangulation
         added, before, after = triangulate_new(self.model, self.K, self.keypoints, self.track_of, self.tried,
-                                               min_angle_deg=options.min_angle_deg, max_error_px=options.max_error_px,
+                                               min_angle_deg=options.min_angle_deg,
+                                               max_error_px=options.max_error_px,
                                                min_track_length=options.min_track_length)
         if added:
             self.tri_before.append((before, added))
@@ -312,20 +319,22 @@ class Incremental:
                 result = stop.value[0]
                 break
             self.step += 1
-            yield Progress(self.step, None, rms, f"bundle adjustment after image {after}: iteration {iteration}")
+            yield Progress(self.step, None, rms,
+                           f"bundle adjustment after image {after}: iteration {iteration}")
         self.ba_before.append(result.rms_before)
         self.ba_after.append(result.rms_after)
         self.ba_ok &= result.rms_after <= result.rms_before
 
     def grow_tracks(self, *, rounds: int) -> None:
         """Complete and merge the tracks (when on), drop two-view points, stop using outlier observations."""
-        if self.track_growth.complete:
+        growth = self.track_growth
+        if growth.complete:
             added, joined = complete_and_merge(self.model, self.K, self.keypoints, self.track_of, self.unit,
-                                               self.trees, self.sizes, max_error_px=self.track_growth.max_error_px,
-                                               max_descriptor_distance=self.track_growth.max_descriptor_distance,
+                                               self.trees, self.sizes, max_error_px=growth.max_error_px,
+                                               max_descriptor_distance=growth.max_descriptor_distance,
                                                rounds=rounds)
             self.completed, self.merged = self.completed + added, self.merged + joined
-            if self.track_growth.ignore_two_view:
+            if growth.ignore_two_view:
                 drop_two_view_points(self.model, self.track_of, self.tried)
         reject_outliers(self.model, self.K, self.keypoints, self.track_of, self.triangulation.max_error_px)
 
@@ -338,7 +347,8 @@ class Incremental:
     def registration_chart(self) -> Curve:
         """The linear and non-linear PnP RMS of each registered image, as a bar chart."""
         return Curve(np.arange(len(self.order), dtype=np.float64),
-                     np.array([self.linear_rms, self.nonlinear_rms], dtype=np.float64).reshape(2, -1), kind="bar",
+                     np.array([self.linear_rms, self.nonlinear_rms], dtype=np.float64).reshape(2, -1),
+                     kind="bar",
                      title="PnP reprojection RMS per registered image", xlabel="image", ylabel="RMS (px)",
                      labels=("linear PnP (DLT in RANSAC)", "non-linear PnP"),
                      categories=tuple(self.names[v] for v in self.order))

@@ -1,4 +1,5 @@
-"""The steps of incremental structure from motion, in pipeline order (the module docstring lists the state)."""
+"""The steps of incremental structure from motion, in pipeline order (the package docstring lists the
+state)."""
 
 from __future__ import annotations
 
@@ -7,22 +8,22 @@ from typing import Annotated, Any, Literal
 
 import numpy as np
 
-from lab.core import (Cameras, Curve, ImageSet, InvalidValue, PointCloud, Points2D, Progress, Range, StepFailed,
-                      metric)
+from lab.core import (Cameras, Curve, ImageSet, InvalidValue, PointCloud, Points2D, Progress, Range,
+                      StepFailed, metric)
 from lab.data.reconstruction import SparseModel
 from lab.core.step import Warnings, step_result
 from lab.geometry.camera import pixels_to_normalized
-from lab.geometry.triangulation import point_depths, projection_matrix, refine_points, reprojection_residuals, \
-    triangulate_dlt
+from lab.geometry.triangulation import (point_depths, projection_matrix, refine_points,
+                                       reprojection_residuals, triangulate_dlt)
 from lab.modules import epipolar
 from lab.modules.sfm._checks import (check_images, check_keypoints, check_matches, check_model, check_pair,
                                     check_track_of, keypoint_views)
 from lab.modules.sfm.datasets import check_intrinsics
-from lab.modules.sfm.model import (GrowingModel, error_colors, freeze, observation_errors, poses_matrix, ray_angles_deg,
-                                   refreeze, sample_colors)
+from lab.modules.sfm.model import (GrowingModel, error_colors, freeze, observation_errors, poses_matrix,
+                                   ray_angles_deg, refreeze, sample_colors)
 from lab.modules.sfm.pairs import image_pairs, pair_parallax, pair_rows
-from lab.modules.sfm.registration import (Adjustment, Incremental, Registration, TrackGrowth, Triangulation, bundle,
-                                          weighted_rms)
+from lab.modules.sfm.registration import (Adjustment, Incremental, Registration, TrackGrowth, Triangulation,
+                                          bundle, weighted_rms)
 from lab.modules.sfm.tracks import (connected_tracks, keypoint_trees, pair_observations, track_lengths,
                                     unit_descriptors_of)
 
@@ -89,8 +90,8 @@ def detect_all_features(images: ImageSet, *, max_features: Annotated[int, Range(
     counts = [len(p) for p in xy]
     keypoints = Points2D(np.concatenate(xy), view=np.concatenate(view), colors=np.concatenate(colors),
                          image="images")
-    return Features(keypoints, np.concatenate(descriptors).astype(np.float32), tuple(warnings), int(sum(counts)),
-                    int(min(counts)))
+    return Features(keypoints, np.concatenate(descriptors).astype(np.float32), tuple(warnings),
+                    int(sum(counts)), int(min(counts)))
 
 
 @step_result
@@ -134,7 +135,8 @@ def match_all_pairs(keypoints: Points2D, descriptors: np.ndarray, *,
         raise InvalidValue("descriptors", f"expected one row per keypoint ({len(keypoints)}), got "
                                           f"{descriptors.shape}")
     if views < 2:
-        raise InvalidValue("keypoints", f"structure from motion needs keypoints in at least two images, got {views}")
+        raise InvalidValue("keypoints",
+                           f"structure from motion needs keypoints in at least two images, got {views}")
     index = [np.flatnonzero(view == v) for v in range(views)]
     rows, labels, counts, warnings = [], [], [], []
     for a, b in image_pairs(views, pairs=pairs, window=window):
@@ -151,7 +153,8 @@ def match_all_pairs(keypoints: Points2D, descriptors: np.ndarray, *,
     matches = np.concatenate(rows) if rows else np.zeros((0, 4), dtype=np.int64)
     if not len(matches):
         warnings.append("no matches between any two images")
-    chart = Curve(np.arange(len(counts), dtype=np.float64), np.asarray(counts, dtype=np.float64).reshape(1, -1),
+    chart = Curve(np.arange(len(counts), dtype=np.float64),
+                  np.asarray(counts, dtype=np.float64).reshape(1, -1),
                   kind="bar", title="Matches per image pair", xlabel="pair", ylabel="matches",
                   categories=tuple(labels))
     return PairMatches(matches, chart, tuple(warnings), len(counts), len(matches))
@@ -216,7 +219,8 @@ def verify_pairs(images: ImageSet, keypoints: Points2D, matches: np.ndarray, K: 
             continue
         try:
             fit = epipolar.estimate_fundamental_ransac(x1, x2, threshold_px=threshold_px, confidence=0.999,
-                                                       max_iterations=max_iterations, check_degenerate=False, rng=rng)
+                                                       max_iterations=max_iterations, check_degenerate=False,
+                                                       rng=rng)
             inliers = fit.inliers
             if inliers.sum() < min_inliers:
                 raise epipolar.TooFewMatches("x1", f"{int(inliers.sum())} inliers")
@@ -235,10 +239,11 @@ def verify_pairs(images: ImageSet, keypoints: Points2D, matches: np.ndarray, K: 
     connected = set(view_graph[:, :2].astype(int).ravel().tolist())
     lonely = [f"{images.names[v]} (image {v})" for v in range(len(images)) if v not in connected]
     if lonely:
-        warnings.append(f"no verified pair for {', '.join(lonely)}: they share no (consistent) matches with any other "
-                        "image and cannot be registered")
+        warnings.append(f"no verified pair for {', '.join(lonely)}: they share no (consistent) matches with "
+                        "any other image and cannot be registered")
     chart = Curve(np.arange(len(graph), dtype=np.float64), view_graph[:, 3].reshape(1, -1), kind="bar",
-                  title="Inliers per verified pair", xlabel="pair", ylabel="inliers", categories=tuple(labels))
+                  title="Inliers per verified pair", xlabel="pair", ylabel="inliers",
+                  categories=tuple(labels))
     return VerifiedPairs(matches[keep], view_graph, np.array(poses).reshape(-1, 3, 4), chart, tuple(warnings),
                          len(graph), rejected, int(keep.sum()))
 
@@ -260,8 +265,10 @@ class Tracks:
     dropped_keypoints: int = metric("keypoints of inconsistent components left in no track")
 
 
-def build_tracks(keypoints: Points2D, inlier_matches: np.ndarray, descriptors: np.ndarray | None = None) -> Tracks:
-    """Join the verified matches into tracks: the connected components of the match graph, inconsistent ones split.
+def build_tracks(keypoints: Points2D, inlier_matches: np.ndarray,
+                 descriptors: np.ndarray | None = None) -> Tracks:
+    """Join the verified matches into tracks: the connected components of the match graph, inconsistent ones
+    split.
 
     Nodes are keypoints, edges the inlier matches; a component is one 3D point seen in several
     images (union-find, here ``scipy.sparse.csgraph.connected_components``). A component with two
@@ -278,8 +285,8 @@ def build_tracks(keypoints: Points2D, inlier_matches: np.ndarray, descriptors: n
     keypoints = check_keypoints(keypoints)
     m = check_matches(inlier_matches, "inlier_matches", keypoints)
     if not len(m):
-        return Tracks(np.full(len(keypoints), -1, dtype=np.int64), ("no verified matches: no tracks",), 0, 0.0, 0, 0,
-                      0, 0)
+        return Tracks(np.full(len(keypoints), -1, dtype=np.int64), ("no verified matches: no tracks",), 0,
+                      0.0, 0, 0, 0, 0)
     track_of, count, (inconsistent, split, cut, dropped) = connected_tracks(
         keypoints, m, unit_descriptors_of(descriptors, keypoints))
     mean = float(np.sum(track_of >= 0) / count) if count else 0.0
@@ -402,7 +409,8 @@ def triangulate_initial(images: ImageSet, keypoints: Points2D, track_of: np.ndar
                         initial_pair: np.ndarray, initial_pose: np.ndarray, *,
                         min_angle_deg: Annotated[float, Range(0.0, 30.0)] = 1.0,
                         ignore_two_view_tracks: bool = True) -> InitialPoints:
-    """Linear (DLT) triangulation of the tracks seen in both initial views (``triangulate_dlt``): the two-view model.
+    """Linear (DLT) triangulation of the tracks seen in both initial views (``triangulate_dlt``): the two-view
+    model.
 
     ``P1 = K1 [I | 0]``, ``P2 = K2 [R | t]``; each point is the null vector of its ``4 x 4`` DLT
     system. Points behind either camera (cheirality) or whose two rays meet at less than
@@ -435,8 +443,10 @@ def triangulate_initial(images: ImageSet, keypoints: Points2D, track_of: np.ndar
         ignored = int(np.sum(~longer))
         tracks, ka, kb = tracks[longer], ka[longer], kb[longer]
     if len(tracks) < PNP_MINIMUM:
-        raise InvalidValue("track_of", f"images {a} and {b} share only {len(tracks)} tracks: choose another pair")
-    P = np.stack([projection_matrix(K[a], np.eye(3), np.zeros(3)), projection_matrix(K[b], pose[:, :3], pose[:, 3])])
+        raise InvalidValue("track_of",
+                           f"images {a} and {b} share only {len(tracks)} tracks: choose another pair")
+    P = np.stack([projection_matrix(K[a], np.eye(3), np.zeros(3)),
+                  projection_matrix(K[b], pose[:, :3], pose[:, 3])])
     x = np.stack([keypoints.xy[ka], keypoints.xy[kb]])
     X = triangulate_dlt(P, x)
     finite = np.all(np.isfinite(X), axis=1)
@@ -475,7 +485,8 @@ class InitialModel:
 
 def refine_initial_points(initial_model_dlt: SparseModel, initial_pair: np.ndarray, *,
                           iterations: Annotated[int, Range(0, 100)] = 10) -> InitialModel:
-    """Non-linear triangulation: move each point to minimize its reprojection error in both views (cameras fixed).
+    """Non-linear triangulation: move each point to minimize its reprojection error in both views (cameras
+    fixed).
 
     Levenberg-Marquardt per point on ``|pi(P1 X) - x1|^2 + |pi(P2 X) - x2|^2``
     (:func:`lab.geometry.triangulation.refine_points`), the maximum-likelihood point under
@@ -497,7 +508,8 @@ def refine_initial_points(initial_model_dlt: SparseModel, initial_pair: np.ndarr
     ka, kb = np.zeros(len(dlt.points), dtype=np.int64), np.zeros(len(dlt.points), dtype=np.int64)
     ka[point[views == a]], kb[point[views == b]] = kp[views == a], kp[views == b]
     K, pose = dlt.K, dlt.poses[b]
-    P = np.stack([projection_matrix(K[a], np.eye(3), np.zeros(3)), projection_matrix(K[b], pose[:, :3], pose[:, 3])])
+    P = np.stack([projection_matrix(K[a], np.eye(3), np.zeros(3)),
+                  projection_matrix(K[b], pose[:, :3], pose[:, 3])])
     X, history = refine_points(P, np.stack([dlt.keypoints.xy[ka], dlt.keypoints.xy[kb]]), dlt.points,
                                iterations=int(iterations))
     refined = GrowingModel.of(dlt)
@@ -529,8 +541,8 @@ class IncrementalModel:
                                          "(track continuation)")
     observations_completed: int = metric("observations attached to existing points by track completion")
     tracks_merged: int = metric("pairs of points merged into one (track merging)")
-    pnp_rms_linear_px: float = metric("RMS reprojection error of the PnP inliers, linear PnP (DLT in RANSAC), "
-                                      "mean over registrations", unit="px")
+    pnp_rms_linear_px: float = metric("RMS reprojection error of the PnP inliers, linear PnP (DLT in "
+                                      "RANSAC), mean over registrations", unit="px")
     pnp_rms_nonlinear_px: float = metric("the same after non-linear PnP", unit="px")
     triangulation_rms_linear_px: float = metric("RMS reprojection error of the new points, DLT", unit="px")
     triangulation_rms_nonlinear_px: float = metric("the same after non-linear triangulation", unit="px")
@@ -554,7 +566,8 @@ def reconstruct_incrementally(initial_model: SparseModel, initial_pair: np.ndarr
                               max_descriptor_distance: Annotated[float, Range(0.0, 2.0)] = 0.5,
                               rng: np.random.Generator,
                               ) -> Generator[Progress, None, IncrementalModel]:
-    """Grow the two-view model one image at a time: register -> triangulate -> bundle adjust (a generator step).
+    """Grow the two-view model one image at a time: register -> triangulate -> bundle adjust (a generator
+    step).
 
     Repeat while an unregistered image sees at least ``min_correspondences`` reconstructed points
     (through its tracks), taking the one that sees most (Schönberger and Frahm 2016, section 4.2,
@@ -616,10 +629,12 @@ def reconstruct_incrementally(initial_model: SparseModel, initial_pair: np.ndarr
     Reference: Schönberger and Frahm, CVPR 2016, sections 3-4; H&Z chapters 7 and 12; Triggs et al. (2000).
     """
     start = check_model(initial_model, "initial_model")
-    keypoints, tracks = start.keypoints, start.track_of.copy()  # the tracks grow: continued, completed, merged
+    keypoints = start.keypoints
+    tracks = start.track_of.copy()  # the tracks grow: continued, completed, merged
     anchor, _ = check_pair(initial_pair, len(start))
     loop = Incremental(
-        GrowingModel.of(start), start.K, keypoints, tracks, unit_descriptors_of(descriptors, keypoints), start.names,
+        GrowingModel.of(start), start.K, keypoints, tracks, unit_descriptors_of(descriptors, keypoints),
+        start.names,
         start.sizes.astype(np.float64), anchor, Registration(pnp_threshold_px, min_correspondences),
         Triangulation(min_angle_deg, max_error_px, 2 if complete_tracks or not ignore_two_view_tracks else 3),
         Adjustment(ba_loss, ba_iterations, ba_growth),
@@ -638,7 +653,8 @@ def reconstruct_incrementally(initial_model: SparseModel, initial_pair: np.ndarr
         model, model.cameras(image="images"), model.point_cloud(), model.observation_pixels(image="images"),
         loop.registration_chart(), loop.warnings(), registered_images=int(model.registered.sum()),
         points_total=len(model.points), mean_track_length=float(counts.mean()) if len(counts) else 0.0,
-        observations_continued=loop.continued, observations_completed=loop.completed, tracks_merged=loop.merged,
+        observations_continued=loop.continued, observations_completed=loop.completed,
+        tracks_merged=loop.merged,
         pnp_rms_linear_px=float(np.mean(loop.linear_rms)) if loop.linear_rms else 0.0,
         pnp_rms_nonlinear_px=float(np.mean(loop.nonlinear_rms)) if loop.nonlinear_rms else 0.0,
         triangulation_rms_linear_px=weighted_rms(loop.tri_before),
@@ -696,8 +712,9 @@ def filter_points(model: SparseModel, *, max_error_px: Annotated[float, Range(0.
     keep = (counts >= 2) & (angles >= min_angle_deg)
     kept.points, kept.point_tracks = kept.points[keep], kept.point_tracks[keep]
     if not len(kept.points):
-        raise StepFailed("filter_points", f"no point has two observations within {max_error_px:g} px and an angle "
-                                          f"of {min_angle_deg:g} degrees; loosen the limits")
+        raise StepFailed("filter_points",
+                         f"no point has two observations within {max_error_px:g} px and an angle "
+                         f"of {min_angle_deg:g} degrees; loosen the limits")
     filtered = refreeze(kept, track_of, model)
     return FilteredModel(filtered, filtered.point_cloud(), filtered.observation_pixels(image="images"),
                          int(bad.sum()), len(model.points) - int(keep.sum()), len(filtered.points))
@@ -775,8 +792,8 @@ def bundle_adjust_all(filtered_model: SparseModel, initial_pair: np.ndarray, *, 
                            for v in np.flatnonzero(model.registered)])
     adjusted = refreeze(model, track_of, filtered, K_out)
     history = np.asarray(result.cost_history, dtype=np.float64)
-    cost = Curve(np.arange(len(history), dtype=np.float64), history, title="Bundle adjustment", xlabel="iteration",
-                 ylabel="RMS reprojection error (px)", labels=("RMS",))
+    cost = Curve(np.arange(len(history), dtype=np.float64), history, title="Bundle adjustment",
+                 xlabel="iteration", ylabel="RMS reprojection error (px)", labels=("RMS",))
     return AdjustedModel(adjusted, adjusted.cameras(image="images", colors=error_colors(per_camera, 2.0)),
                          adjusted.point_cloud(), adjusted.observation_pixels(image="images"), cost,
                          result.rms_before, result.rms_after, int(result.iterations), bool(result.improved),

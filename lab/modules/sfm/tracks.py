@@ -32,14 +32,16 @@ def unit_descriptors(descriptors: np.ndarray) -> np.ndarray:
 
 
 def unit_descriptors_of(descriptors: Any, keypoints: Points2D) -> np.ndarray | None:
-    """:func:`unit_descriptors` of an optional input, checked to have one row per keypoint (None stays None)."""
+    """:func:`unit_descriptors` of an optional input, checked to have one row per keypoint (None stays
+    None)."""
     if descriptors is None:
         return None
     return unit_descriptors(check_descriptors(descriptors, keypoints))
 
 
 def split_inconsistent(edges: np.ndarray, view: np.ndarray, order: np.ndarray | None = None) -> np.ndarray:
-    """Cut an inconsistent match graph into consistent tracks: a union-find that never joins two sets sharing a view.
+    """Cut an inconsistent match graph into consistent tracks: a union-find that never joins two sets sharing
+    a view.
 
     ``edges`` ``(E, 2)`` keypoint indices (local, ``0 .. n-1``), ``view`` ``(n,)`` the image of each
     keypoint, ``order`` the order in which the edges are tried (best first, e.g. by descriptor
@@ -121,7 +123,7 @@ def connected_tracks(keypoints: Points2D, m: np.ndarray,
         keep = part_sizes[root] >= 2
         labels[members] = len(sizes) + part  # new labels beyond the components'
         consistent[members[keep]] = True
-        split = int(len(np.unique(root[keep])))
+        split = len(np.unique(root[keep]))
         cut = int(np.sum(root[local[edges[:, 0]]] != root[local[edges[:, 1]]]))
         dropped = int(np.sum(~keep))
     kept, renumbered = np.unique(labels[consistent], return_inverse=True)
@@ -157,16 +159,18 @@ def keypoint_trees(keypoints: Points2D, views: int) -> KeypointTrees:
 
 def correspondences_2d3d(model: GrowingModel, keypoints: Points2D, track_of: np.ndarray, view: int, *,
                          all_keypoints: bool = False) -> tuple[np.ndarray, np.ndarray]:
-    """``(keypoints, points)`` of ``view`` whose tracks have a point (the still-used ones, all if ``all_keypoints``)."""
+    """``(keypoints, points)`` of ``view`` whose tracks have a point (the still-used ones, all if
+    ``all_keypoints``)."""
     of_track = model.point_of_track(max(len(track_of) and int(track_of.max()) + 1, 1))
-    kp = np.flatnonzero((keypoint_views(keypoints) == view) & (track_of >= 0) & (model.observed | all_keypoints))
+    used = model.observed | all_keypoints
+    kp = np.flatnonzero((keypoint_views(keypoints) == view) & (track_of >= 0) & used)
     point = of_track[track_of[kp]] if len(kp) else np.zeros(0, dtype=np.int64)
     kp, point = kp[point >= 0], point[point >= 0]
     return kp, point
 
 
-def continue_tracks(model: GrowingModel, K: np.ndarray, keypoints: Points2D, track_of: np.ndarray, view: int, *,
-                    max_error_px: float) -> int:
+def continue_tracks(model: GrowingModel, K: np.ndarray, keypoints: Points2D, track_of: np.ndarray, view: int,
+                    *, max_error_px: float) -> int:
     """Track continuation: the new image's keypoints whose tracks already have a point become observations
     when they reproject within ``max_error_px`` under its refined pose (PnP outliers that fit it come back).
 
@@ -181,8 +185,8 @@ def continue_tracks(model: GrowingModel, K: np.ndarray, keypoints: Points2D, tra
 
 
 def guided_candidates(model: GrowingModel, K: np.ndarray, keypoints: Points2D, track_of: np.ndarray,
-                      unit: np.ndarray | None, trees: KeypointTrees, sizes: np.ndarray, *, max_error_px: float,
-                      max_descriptor_distance: float) -> Candidates:
+                      unit: np.ndarray | None, trees: KeypointTrees, sizes: np.ndarray, *,
+                      max_error_px: float, max_descriptor_distance: float) -> Candidates:
     """Keypoints that may observe a point in a registered image where it has no observation yet.
 
     Every point is projected into every registered image its track does not observe; the keypoints
@@ -227,13 +231,15 @@ def guided_candidates(model: GrowingModel, K: np.ndarray, keypoints: Points2D, t
         return empty
     cp, ck, ce = np.concatenate(found_p), np.concatenate(found_k), np.concatenate(found_e)
     if unit is not None and len(cp):
-        cp, ck, ce = _close_in_descriptor(cp, ck, ce, kp, point, unit, len(model.points), max_descriptor_distance)
+        cp, ck, ce = _close_in_descriptor(cp, ck, ce, kp, point, unit, len(model.points),
+                                          max_descriptor_distance)
     return cp, ck, ce
 
 
 def _close_in_descriptor(cp: np.ndarray, ck: np.ndarray, ce: np.ndarray, kp: np.ndarray, point: np.ndarray,
                          unit: np.ndarray, num_points: int, max_distance: float) -> Candidates:
-    """The candidates whose unit descriptor lies within ``max_distance`` of one of their point's observations."""
+    """The candidates whose unit descriptor lies within ``max_distance`` of one of their point's
+    observations."""
     order = np.argsort(point, kind="stable")
     obs_kp = kp[order]
     counts = np.bincount(point, minlength=num_points)
@@ -249,7 +255,8 @@ def _close_in_descriptor(cp: np.ndarray, ck: np.ndarray, ce: np.ndarray, kp: np.
     return cp[close], ck[close], ce[close]
 
 
-def complete_tracks(model: GrowingModel, keypoints: Points2D, track_of: np.ndarray, candidates: Candidates) -> int:
+def complete_tracks(model: GrowingModel, keypoints: Points2D, track_of: np.ndarray,
+                    candidates: Candidates) -> int:
     """Track completion: attach to each point the free keypoints of :func:`guided_candidates` (in place).
 
     A keypoint is free when it observes no point. Each keypoint goes to the point it fits best and
@@ -300,7 +307,8 @@ def merge_tracks(model: GrowingModel, K: np.ndarray, keypoints: Points2D, track_
     kp, views, point = model.observations(keypoints, track_of)
     counts = np.bincount(point, minlength=len(model.points)).astype(np.float64)
     na, nb = counts[pairs[:, 0]], counts[pairs[:, 1]]
-    merged = (na[:, None] * model.points[pairs[:, 0]] + nb[:, None] * model.points[pairs[:, 1]]) / (na + nb)[:, None]
+    merged = ((na[:, None] * model.points[pairs[:, 0]] + nb[:, None] * model.points[pairs[:, 1]])
+              / (na + nb)[:, None])
     # worst reprojection error of the merged point over the observations of both points
     slot = np.full(len(model.points), -1, dtype=np.int64)
     worst = np.zeros(len(pairs))
@@ -308,7 +316,8 @@ def merge_tracks(model: GrowingModel, K: np.ndarray, keypoints: Points2D, track_
         slot[:] = -1
         slot[pairs[:, side]] = np.arange(len(pairs))
         rows = np.flatnonzero(slot[point] >= 0)
-        error = observation_errors(model, K, keypoints, kp[rows], views[rows], point[rows], merged[slot[point[rows]]])
+        error = observation_errors(model, K, keypoints, kp[rows], views[rows], point[rows],
+                                   merged[slot[point[rows]]])
         np.maximum.at(worst, slot[point[rows]], error)
     good = worst <= max_error_px
     pairs, merged, worst = pairs[good], merged[good], worst[good]
@@ -316,7 +325,8 @@ def merge_tracks(model: GrowingModel, K: np.ndarray, keypoints: Points2D, track_
         return 0
     order = np.argsort(worst, kind="stable")
     pairs, merged = pairs[order], merged[order]
-    sequence = pairs.reshape(-1)  # a point may merge once per call: keep pairs whose points appear first there
+    # a point may merge once per call: keep the pairs whose points appear first in the sequence
+    sequence = pairs.reshape(-1)
     _, first = np.unique(sequence, return_index=True)
     first_of = np.full(len(model.points), -1)
     first_of[sequence[first]] = first
@@ -358,9 +368,11 @@ def _mergeable_pairs(model: GrowingModel, keypoints: Points2D, track_of: np.ndar
 
 
 def complete_and_merge(model: GrowingModel, K: np.ndarray, keypoints: Points2D, track_of: np.ndarray,
-                       unit: np.ndarray | None, trees: KeypointTrees, sizes: np.ndarray, *, max_error_px: float,
+                       unit: np.ndarray | None, trees: KeypointTrees, sizes: np.ndarray, *,
+                       max_error_px: float,
                        max_descriptor_distance: float, rounds: int = 1) -> tuple[int, int]:
-    """Complete, then merge tracks, ``rounds`` times or until nothing changes: ``(observations added, merges)``.
+    """Complete, then merge tracks, ``rounds`` times or until nothing changes: ``(observations added,
+    merges)``.
 
     COLMAP's ``IncrementalTriangulator::CompleteAndMergeTracks``.
     """
@@ -368,7 +380,8 @@ def complete_and_merge(model: GrowingModel, K: np.ndarray, keypoints: Points2D, 
     for _ in range(rounds):
         options = dict(max_error_px=max_error_px, max_descriptor_distance=max_descriptor_distance)
         added = complete_tracks(model, keypoints, track_of,
-                                guided_candidates(model, K, keypoints, track_of, unit, trees, sizes, **options))
+                                guided_candidates(model, K, keypoints, track_of, unit, trees, sizes,
+                                                  **options))
         joined = merge_tracks(model, K, keypoints, track_of,
                               guided_candidates(model, K, keypoints, track_of, unit, trees, sizes, **options),
                               max_error_px=max_error_px)

@@ -9,7 +9,8 @@ rendering, no matching), so each can be run, inspected and replaced by a student
 2. :func:`refine_poses` - non-linear PnP (:func:`lab.geometry.pnp.refine_pnp`);
 3. :func:`triangulate_points_linear` - linear triangulation (DLT) of every point from all views that
    see it (:func:`lab.geometry.triangulation.triangulate_dlt`; lesson task 2);
-4. :func:`refine_points_nonlinear` - non-linear triangulation (:func:`lab.geometry.triangulation.refine_points`);
+4. :func:`refine_points_nonlinear` - non-linear triangulation
+   (:func:`lab.geometry.triangulation.refine_points`);
 5. :func:`jacobian_sparsity` - which entries of the bundle-adjustment Jacobian can be non-zero
    (:func:`lab.geometry.bundle_adjustment.bundle_sparsity`; lesson task 3);
 6. :func:`bundle_adjust_scene` - bundle adjustment by ``scipy.optimize.least_squares`` with
@@ -48,8 +49,8 @@ from __future__ import annotations
 
 from lab.core import Pipeline
 from lab.modules.sfm_basics.datasets import synthetic
-from lab.modules.sfm_basics.evaluate import (evaluate_bundle, evaluate_points, evaluate_points_linear, evaluate_poses,
-                                             evaluate_poses_linear)
+from lab.modules.sfm_basics.evaluate import (evaluate_bundle, evaluate_points, evaluate_points_linear,
+                                             evaluate_poses, evaluate_poses_linear)
 from lab.modules.sfm_basics.steps import (CAMERA_PARAMS, BundleAdjusted, RefinedPoints, RefinedPoses,
                                           bundle_adjust_scene, estimate_poses_linear, jacobian_sparsity,
                                           refine_points_nonlinear, refine_poses, scene_model,
@@ -60,14 +61,16 @@ PIPELINE = Pipeline.build(
     title="Structure from motion: the building blocks",
     summary="Linear and non-linear PnP, linear and non-linear triangulation, and bundle adjustment with the "
             "Jacobian's sparsity pattern, each a step, on a small exact multi-view scene.",
-    steps=[estimate_poses_linear, refine_poses, triangulate_points_linear, refine_points_nonlinear, jacobian_sparsity,
-           bundle_adjust_scene],
+    steps=[estimate_poses_linear, refine_poses, triangulate_points_linear, refine_points_nonlinear,
+           jacobian_sparsity, bundle_adjust_scene],
     datasets=[synthetic],
     evaluations={"estimate_poses_linear": evaluate_poses_linear, "refine_poses": evaluate_poses,
-                 "triangulate_points_linear": evaluate_points_linear, "refine_points_nonlinear": evaluate_points,
-                 "bundle_adjust_scene": evaluate_bundle},
+                 "triangulate_points_linear": evaluate_points_linear,
+                 "refine_points_nonlinear": evaluate_points, "bundle_adjust_scene": evaluate_bundle},
 )
 
-__all__ = ["PIPELINE", "synthetic", "estimate_poses_linear", "refine_poses", "RefinedPoses", "triangulate_points_linear",
-           "refine_points_nonlinear", "RefinedPoints", "scene_model", "jacobian_sparsity", "bundle_adjust_scene",
-           "BundleAdjusted", "CAMERA_PARAMS"]
+__all__ = [
+    "CAMERA_PARAMS", "PIPELINE", "BundleAdjusted", "RefinedPoints", "RefinedPoses", "bundle_adjust_scene",
+    "estimate_poses_linear", "jacobian_sparsity", "refine_points_nonlinear", "refine_poses", "scene_model",
+    "synthetic", "triangulate_points_linear",
+]

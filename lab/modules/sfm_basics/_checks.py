@@ -42,8 +42,14 @@ def check_poses(poses: Any, name: str, count: int | None = None) -> np.ndarray:
     return P
 
 
+def views_and_ids(observations: Points2D) -> tuple[np.ndarray, np.ndarray]:
+    """The camera ``view`` and the point ``ids`` of every observation (checked observations have both)."""
+    assert observations.view is not None and observations.ids is not None
+    return observations.view, observations.ids
+
+
 def view_count(observations: Points2D) -> int:
-    views = np.unique(observations.view)
+    views = np.unique(views_and_ids(observations)[0])
     if not np.array_equal(views, np.arange(len(views))):
         raise InvalidValue("observations", f"cameras must be numbered 0 .. V-1 without gaps, "
                                            f"got views {views.tolist()}")
@@ -51,10 +57,11 @@ def view_count(observations: Points2D) -> int:
 
 
 def point_count(observations: Points2D, points: np.ndarray | None = None) -> int:
-    count = int(observations.ids.max()) + 1
+    count = int(views_and_ids(observations)[1].max()) + 1
     if points is not None:
         if len(points) < count:
-            raise InvalidValue("observations", f"ids go up to {count - 1} but there are {len(points)} 3D points")
+            raise InvalidValue("observations",
+                               f"ids go up to {count - 1} but there are {len(points)} 3D points")
         count = len(points)
     return count
 
@@ -62,28 +69,32 @@ def point_count(observations: Points2D, points: np.ndarray | None = None) -> int
 
 def stacked(observations: Points2D, V: int, N: int) -> tuple[np.ndarray, np.ndarray]:
     """Observations as ``(V, N, 2)`` pixels and a ``(V, N)`` mask (a camera sees a point at most once)."""
+    view, ids = views_and_ids(observations)
     x = np.zeros((V, N, 2))
     mask = np.zeros((V, N), dtype=bool)
-    if np.any(observations.view >= V):
-        raise InvalidValue("observations", f"a view index is {int(observations.view.max())} but there are {V} poses")
-    flat = observations.view * N + observations.ids
+    if np.any(view >= V):
+        raise InvalidValue("observations", f"a view index is {int(view.max())} but there are {V} poses")
+    flat = view * N + ids
     if len(np.unique(flat)) != len(flat):
         raise InvalidValue("observations", "a camera observes the same point twice")
-    x[observations.view, observations.ids] = observations.xy
-    mask[observations.view, observations.ids] = True
+    x[view, ids] = observations.xy
+    mask[view, ids] = True
     seen = mask.sum(axis=0)
     if np.any(seen < 2):
-        raise InvalidValue("observations", f"point {int(np.flatnonzero(seen < 2)[0])} is seen by fewer than two "
-                                           "cameras: it cannot be triangulated")
+        raise InvalidValue("observations",
+                           f"point {int(np.flatnonzero(seen < 2)[0])} is seen by fewer than two "
+                           "cameras: it cannot be triangulated")
     return x, mask
 
 
-def check_indices(camera_indices: Any, point_indices: Any, num_cameras: Any, num_points: Any) -> tuple[np.ndarray, ...]:
+def check_indices(camera_indices: Any, point_indices: Any, num_cameras: Any,
+                  num_points: Any) -> tuple[np.ndarray, ...]:
     cameras = np.asarray(camera_indices)
     points = np.asarray(point_indices)
     if cameras.ndim != 1 or points.shape != cameras.shape or len(cameras) == 0:
-        raise InvalidValue("camera_indices", f"camera and point indices must be two non-empty (M,) arrays of the same "
-                                             f"length, got {cameras.shape} and {points.shape}")
+        raise InvalidValue("camera_indices",
+                           f"camera and point indices must be two non-empty (M,) arrays of the same "
+                           f"length, got {cameras.shape} and {points.shape}")
     if not (np.issubdtype(cameras.dtype, np.integer) and np.issubdtype(points.dtype, np.integer)):
         raise InvalidValue("camera_indices", "indices must be integers")
     for name, value in (("num_cameras", num_cameras), ("num_points", num_points)):

@@ -19,7 +19,8 @@ def synthetic(*, num_points: Annotated[int, Range(6, 2000)] = 60, num_views: Ann
     """Random 3D points in a box seen by cameras on an orbit, projected exactly, plus pixel noise.
 
     The points are uniform in a 2 m cube centred at ``(8, 5, 1)`` (the world origin is a corner
-    of the site, about 9 m away, behind some of the cameras); ``num_views`` cameras (640 x 480, 60 degree field of view)
+    of the site, about 9 m away, behind some of the cameras); ``num_views`` cameras (640 x 480, 60 degree
+    field of view)
     sit on a circle of radius 4.5 m, 1.5 m up, around the cube's centre and look at it, each eye
     and look-at point jittered by 0.1 m. Each camera sees each point with probability
     ``visibility`` (every point is seen by at least two cameras and every camera sees at least 12
@@ -63,8 +64,8 @@ def synthetic(*, num_points: Annotated[int, Range(6, 2000)] = 60, num_views: Ann
     state = {
         "K": K, "image_size": np.array([width, height]),
         "points3d": X + rng.normal(0.0, map_noise, size=X.shape),
-        "observations": observations, "camera_indices": view.astype(np.int64), "point_indices": ids.astype(np.int64),
-        "num_cameras": int(num_views), "num_points": int(num_points),
+        "observations": observations, "camera_indices": view.astype(np.int64),
+        "point_indices": ids.astype(np.int64), "num_cameras": int(num_views), "num_points": int(num_points),
     }
     truth = {"R": R, "t": t, "X": X, "pixels": exact}
     return Loaded(state, truth, description=f"{num_points} points, {num_views} cameras on an orbit, "

@@ -1,4 +1,4 @@
-"""The lesson pipeline's comparisons with the truth: pose errors (deg, m) and point errors (m) of each stage."""
+"""The lesson pipeline's comparisons with the truth: pose errors (deg, m) and point errors (m) per stage."""
 
 from __future__ import annotations
 
@@ -18,7 +18,8 @@ def _pose_errors(poses: np.ndarray, truth: dict[str, Any], prefix: str = "") -> 
     centers = -np.einsum("vji,vj->vi", poses[:, :, :3], poses[:, :, 3])
     centers_true = -np.einsum("vji,vj->vi", R_true, t_true)
     center_errors = np.linalg.norm(centers - centers_true, axis=1)
-    return {f"{prefix}rotation_error_deg": float(angles.max()), f"{prefix}center_error_m": float(center_errors.max())}
+    return {f"{prefix}rotation_error_deg": float(angles.max()),
+            f"{prefix}center_error_m": float(center_errors.max())}
 
 
 def evaluate_poses_linear(state: dict[str, Any], truth: dict[str, Any]) -> dict[str, float]:

@@ -1,4 +1,5 @@
-"""The steps of the SfM lesson pipeline, in pipeline order: poses, points, the Jacobian's pattern, the bundle."""
+"""The steps of the SfM lesson pipeline, in pipeline order: poses, points, the Jacobian's pattern, the
+bundle."""
 
 from __future__ import annotations
 
@@ -16,7 +17,7 @@ from lab.geometry.pnp import MIN_CORRESPONDENCES, pnp_dlt, refine_pnp
 from lab.geometry.rotations import nearest_rotation
 from lab.geometry.triangulation import projection_matrix, refine_points, triangulate_dlt
 from lab.modules.sfm_basics._checks import (check_indices, check_observations, check_points, check_poses,
-                                           point_count, stacked, view_count)
+                                           point_count, stacked, view_count, views_and_ids)
 
 #: Parameters per camera in the bundle: axis-angle rotation (3) and translation (3).
 CAMERA_PARAMS = 6
@@ -45,7 +46,8 @@ def _rms(errors: np.ndarray) -> float:
 
 def _cameras(poses: np.ndarray, K: np.ndarray, image_size: Any) -> Cameras:
     width, height = (int(v) for v in np.asarray(image_size).ravel()[:2])
-    return Cameras(np.broadcast_to(K, (len(poses), 3, 3)).copy(), poses[:, :, :3], poses[:, :, 3], width, height)
+    return Cameras(np.broadcast_to(K, (len(poses), 3, 3)).copy(), poses[:, :, :3], poses[:, :, 3], width,
+                   height)
 
 
 #: The colour of a point of the scene, which has no photos: 0.7 grey, as the SfM module's uncoloured points.
@@ -68,11 +70,11 @@ def scene_model(poses: np.ndarray, points: np.ndarray, observations: Points2D, K
     assert observations.ids is not None
     views, count = len(poses), len(points)
     errors, _ = _reprojection(poses, points, observations, K)
-    return SparseModel(K=np.broadcast_to(K, (views, 3, 3)), poses=poses, registered=np.ones(views, dtype=bool),
-                       names=tuple(f"view {v}" for v in range(views)),
+    return SparseModel(K=np.broadcast_to(K, (views, 3, 3)), poses=poses,
+                       registered=np.ones(views, dtype=bool), names=tuple(f"view {v}" for v in range(views)),
                        sizes=np.tile(np.asarray(image_size).ravel()[:2], (views, 1)), keypoints=observations,
-                       track_of=observations.ids, observed=np.ones(len(observations), dtype=bool), points=points,
-                       point_tracks=np.arange(count), colors=np.full((count, 3), GREY),
+                       track_of=observations.ids, observed=np.ones(len(observations), dtype=bool),
+                       points=points, point_tracks=np.arange(count), colors=np.full((count, 3), GREY),
                        errors=_point_errors(errors, observations, count))
 
 
@@ -106,20 +108,22 @@ def estimate_poses_linear(points3d: np.ndarray, observations: Points2D,
     X = check_points(points3d, "points3d")
     K = as_intrinsics(K)
     point_count(observations, X)
+    view, ids = views_and_ids(observations)
     poses = []
     for v in range(view_count(observations)):
-        mine = observations.view == v
+        mine = view == v
         if mine.sum() < MIN_CORRESPONDENCES:
-            raise InvalidValue("observations", f"camera {v} sees {int(mine.sum())} known points; the linear PnP "
-                                               f"needs at least {MIN_CORRESPONDENCES}")
-        R, t = pnp_dlt(X[observations.ids[mine]], observations.xy[mine], K)
+            raise InvalidValue("observations",
+                               f"camera {v} sees {int(mine.sum())} known points; the linear PnP "
+                               f"needs at least {MIN_CORRESPONDENCES}")
+        R, t = pnp_dlt(X[ids[mine]], observations.xy[mine], K)
         poses.append(_as_poses(R, t))
     return np.array(poses)
 
 
 @step_result
 class RefinedPoses:
-    """:func:`refine_poses`' result: ``poses`` ``(V, 3, 4)``, the ``cameras`` drawn, and the stage's errors."""
+    """:func:`refine_poses`' result: ``poses`` ``(V, 3, 4)``, the ``cameras`` drawn, the stage's errors."""
 
     poses: np.ndarray
     cameras: Cameras
@@ -130,7 +134,8 @@ class RefinedPoses:
 
 
 def refine_poses(poses_linear: np.ndarray, points3d: np.ndarray, observations: Points2D, K: np.ndarray,
-                 image_size: np.ndarray, *, loss: Literal["linear", "huber", "soft_l1", "cauchy", "arctan"] = "huber",
+                 image_size: np.ndarray, *,
+                 loss: Literal["linear", "huber", "soft_l1", "cauchy", "arctan"] = "huber",
                  f_scale: Annotated[float, Range(0.01, 100.0)] = 1.0) -> RefinedPoses:
     """Non-linear PnP of every camera from its linear pose (:func:`lab.geometry.pnp.refine_pnp`).
 
@@ -156,10 +161,11 @@ def refine_poses(poses_linear: np.ndarray, points3d: np.ndarray, observations: P
     V = view_count(observations)
     start = check_poses(poses_linear, "poses_linear", V)
     point_count(observations, X)
+    view, ids = views_and_ids(observations)
     refined = []
     for v in range(V):
-        mine = observations.view == v
-        R, t = refine_pnp(nearest_rotation(start[v, :, :3]), start[v, :, 3], X[observations.ids[mine]],
+        mine = view == v
+        R, t = refine_pnp(nearest_rotation(start[v, :, :3]), start[v, :, 3], X[ids[mine]],
                           observations.xy[mine], K, loss=loss, f_scale=f_scale)
         refined.append(_as_poses(np.asarray(R), np.asarray(t)))
     poses = np.array(refined)
@@ -168,7 +174,8 @@ def refine_poses(poses_linear: np.ndarray, points3d: np.ndarray, observations: P
     R_linear = start[:, :, :3]
     gram = np.abs(np.swapaxes(R_linear, 1, 2) @ R_linear - np.eye(3)).max()
     det = np.abs(np.linalg.det(R_linear) - 1.0).max()
-    return RefinedPoses(poses=poses, cameras=_cameras(poses, K, image_size), rms_linear_px=_rms(errors_linear),
+    return RefinedPoses(poses=poses, cameras=_cameras(poses, K, image_size),
+                        rms_linear_px=_rms(errors_linear),
                         rms_refined_px=_rms(errors_refined), orthonormality_linear=float(max(gram, det)),
                         points_behind_linear=int(np.sum(~(depths_linear > 0))))
 
@@ -216,8 +223,8 @@ class RefinedPoints:
     points_behind_linear: int = metric("observations of a linear point that lie behind their camera")
 
 
-def refine_points_nonlinear(points_linear: np.ndarray, observations: Points2D, poses: np.ndarray, K: np.ndarray,
-                            image_size: np.ndarray, *,
+def refine_points_nonlinear(points_linear: np.ndarray, observations: Points2D, poses: np.ndarray,
+                            K: np.ndarray, image_size: np.ndarray, *,
                             iterations: Annotated[int, Range(1, 100)] = 10) -> RefinedPoints:
     """Non-linear triangulation: each point moved to minimize its reprojection error, cameras fixed.
 
@@ -240,7 +247,8 @@ def refine_points_nonlinear(points_linear: np.ndarray, observations: Points2D, p
     N = point_count(observations)
     X0 = check_points(points_linear, "points_linear", N)
     x, mask = stacked(observations, len(P), N)
-    X, _ = refine_points(projection_matrix(K, P[:, :, :3], P[:, :, 3]), x, X0, mask, iterations=int(iterations))
+    X, _ = refine_points(projection_matrix(K, P[:, :, :3], P[:, :, 3]), x, X0, mask,
+                         iterations=int(iterations))
     errors_linear, depths = _reprojection(P, X0, observations, K)
     errors_refined, _ = _reprojection(P, X, observations, K)
     return RefinedPoints(model=scene_model(P, X, observations, K, image_size), cloud=PointCloud(X),
@@ -277,7 +285,7 @@ def jacobian_sparsity(camera_indices: np.ndarray, point_indices: np.ndarray, num
 
 @step_result
 class BundleAdjusted:
-    """:func:`bundle_adjust_scene`' result: the adjusted model, drawn cameras and cloud, the cost per iteration."""
+    """:func:`bundle_adjust_scene`' result: the adjusted model, cameras and cloud drawn, the costs."""
 
     adjusted_model: SparseModel
     ba_cameras: Cameras
@@ -321,7 +329,7 @@ def bundle_adjust_scene(model: SparseModel, sparsity: np.ndarray, *,
     """
     if not isinstance(model, SparseModel):
         raise InvalidValue("model", f"expected a SparseModel, got {type(model).__name__}")
-    if not np.all(model.K == model.K[0]):
+    if not np.all(model.K[0] == model.K):
         raise InvalidValue("model", "bundle_adjust_scene adjusts cameras that share one K")
     if loss not in LOSSES:
         raise InvalidControl("loss", f"unknown loss {loss!r}; losses are {list(LOSSES)}")
@@ -333,8 +341,9 @@ def bundle_adjust_scene(model: SparseModel, sparsity: np.ndarray, *,
     pattern = np.asarray(sparsity)
     shape = (2 * M, CAMERA_PARAMS * V + 3 * N)
     if pattern.shape != shape:
-        raise InvalidValue("sparsity", f"expected shape {shape} (2 rows per observation, 6 columns per camera "
-                                       f"and 3 per point), got {pattern.shape}")
+        raise InvalidValue("sparsity",
+                           f"expected shape {shape} (2 rows per observation, 6 columns per camera "
+                           f"and 3 per point), got {pattern.shape}")
     cams, pts, obs = observed.view, observed.ids, observed.xy
     needed = bundle_sparsity(cams, pts, V, N, camera_params=CAMERA_PARAMS).toarray().astype(bool)
     marked = pattern != 0

@@ -17,6 +17,7 @@ step's progress snapshots (``Progress.values``: cameras and points). The math is
 
 from __future__ import annotations
 
+import contextlib
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass
 from typing import Any
@@ -46,7 +47,8 @@ class TrackObservation:
 
 
 def latest_model(state: Mapping[str, Any]) -> SparseModel | None:
-    """The most refined model in ``state`` (bundle-adjusted, filtered, incremental; :data:`MODEL_VIEWS`), or None."""
+    """The most refined model in ``state`` (bundle-adjusted, filtered, incremental: :data:`MODEL_VIEWS`),
+    or None."""
     return next((state[name] for name in MODEL_VIEWS if isinstance(state.get(name), SparseModel)), None)
 
 
@@ -57,7 +59,7 @@ def track_observations(model: SparseModel, index: int) -> list[TrackObservation]
     kp, views, point = model.observations()
     X = model.points[int(index)]
     out = []
-    for keypoint, view in zip(kp[point == int(index)], views[point == int(index)]):
+    for keypoint, view in zip(kp[point == int(index)], views[point == int(index)], strict=True):
         view = int(view)
         R, t = model.R[view], model.t[view]
         x = model.K[view] @ (R @ X + t)
@@ -94,7 +96,8 @@ class TrackExplorer(Interaction):
         gui = ctx.gui
         self.info = self.track(gui.add_markdown("Run **reconstruct_incrementally** to explore tracks."))
         self.by_error = self.track(gui.add_checkbox("colour points by error", initial_value=False))
-        self.scale = self.track(gui.add_number("error scale (px)", initial_value=1.0, min=0.05, max=50.0, step=0.05))
+        self.scale = self.track(gui.add_number("error scale (px)", initial_value=1.0, min=0.05, max=50.0,
+                                               step=0.05))
         self.index = self.track(gui.add_number("point", initial_value=0, min=0, step=1))
         self.show = self.track(gui.add_button("Show its track", hint="rays from the cameras that see it"))
         self.table = self.track(gui.add_markdown(""))
@@ -125,7 +128,8 @@ class TrackExplorer(Interaction):
         rows = ["| image | observed (px) | reprojected (px) | error (px) |", "|---|---|---|---|"]
         rows += [f"| {o.name} | ({o.observed[0]:.2f}, {o.observed[1]:.2f}) | ({o.reprojected[0]:.2f}, "
                  f"{o.reprojected[1]:.2f}) | {o.error_px:.3f} |" for o in observations]
-        self.table.content = f"**Point {int(index)}**: seen in {len(observations)} images\n\n" + "\n".join(rows)
+        heading = f"**Point {int(index)}**: seen in {len(observations)} images"
+        self.table.content = heading + "\n\n" + "\n".join(rows)
         self.picked = observations
         return observations
 
@@ -188,13 +192,13 @@ class TrackExplorer(Interaction):
     def _drop(self, name: str) -> None:
         handle = self.nodes.pop(name, None)
         if handle is not None:
-            try:
+            with contextlib.suppress(Exception):  # removed with its parent already
                 handle.remove()
-            except Exception:  # removed with its parent already
-                pass
 
 
 INTERACTIONS = [TrackExplorer]
 
-__all__ = ["INTERACTIONS", "MODEL_VIEWS", "TrackExplorer", "TrackObservation", "latest_model", "track_observations",
-           "nearest_point_to_ray", "error_colors"]
+__all__ = [
+    "INTERACTIONS", "MODEL_VIEWS", "TrackExplorer", "TrackObservation", "error_colors", "latest_model",
+    "nearest_point_to_ray", "track_observations",
+]
