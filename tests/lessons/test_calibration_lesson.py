@@ -32,7 +32,8 @@ def test_a_student_solution_scores_full_marks_and_grading_time_is_reported(calib
 def test_the_unnormalized_dlt_is_told_what_to_fix(calibration_lesson):
     report = grade(calibration_lesson, submission("calibration", "wrong_unnormalized_dlt.py"), seed=SEED)
     (output,) = failed(report).values()
-    assert output.startswith("Check: noisy data: the normalized DLT's homographies, up to scale\nData: 8 synthetic")
+    assert output.startswith("Check: noisy data: the normalized DLT's homographies, up to scale\n"
+                             "Data: 8 synthetic")
     assert "relative difference after the best scale factor" in output and "allowed 0.0001" in output
     assert "Hint: your homographies are what the DLT gives without normalization" in output
     assert "mean distance is sqrt(2)" in output
@@ -43,8 +44,8 @@ def test_the_transposed_homography_is_recognised(calibration_lesson):
     lost = failed(report)
     plain = lost["Normalized DLT homography: normalize = false: the plain DLT's homographies, up to scale"]
     assert "Hint: your matrix is the expected one transposed" in plain
-    poses = lost["Normalized DLT homography: clean data: the camera poses computed from your homographies, within "
-                 "0.5 degrees of the truth"]
+    poses = lost["Normalized DLT homography: clean data: the camera poses computed from your homographies, "
+                 "within 0.5 degrees of the truth"]
     assert "metric rotation_error_max_deg after running the pipeline to estimate_extrinsics" in poses
     assert "needed at most 0.5 (the reference gets" in poses
 

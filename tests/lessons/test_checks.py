@@ -150,7 +150,8 @@ def test_same_as_mistake_fires_only_when_the_graders_comparison_passed():
     assert ok.passed and not bad.passed
     found = checks.detect("same_as_mistake", np.ones(3), np.zeros(3), {"outcome": ok, "mistake": "argmax"})
     assert found == "your result is what the known mistake 'argmax' computes"
-    assert checks.detect("same_as_mistake", np.ones(3), np.zeros(3), {"outcome": bad, "mistake": "argmax"}) is None
+    assert checks.detect("same_as_mistake", np.ones(3), np.zeros(3),
+                         {"outcome": bad, "mistake": "argmax"}) is None
     assert checks.detect("same_as_mistake", np.ones(3), np.zeros(3), {"mistake": "argmax"}) is None
 
 
@@ -179,9 +180,10 @@ def test_structure_problem_names_what_is_wrong(got, expected, needle):
 def test_structure_problem_accepts_a_right_value():
     assert checks.structure_problem(np.zeros((2, 3)), np.ones((2, 3)), what="x") is None
     assert checks.structure_problem(np.zeros(3, dtype=np.int64), np.ones(3), what="x") is None
-    assert checks.structure_problem(PointCloud(np.zeros((2, 3))), PointCloud(np.ones((2, 3))), what="x") is None
-    assert "has shape (3, 3)" in checks.structure_problem(PointCloud(np.zeros((3, 3))), PointCloud(np.ones((2, 3))),
-                                                          what="c")
+    assert checks.structure_problem(PointCloud(np.zeros((2, 3))), PointCloud(np.ones((2, 3))),
+                                    what="x") is None
+    problem = checks.structure_problem(PointCloud(np.zeros((3, 3))), PointCloud(np.ones((2, 3))), what="c")
+    assert "has shape (3, 3)" in problem
 
 
 def test_as_compared_and_select():

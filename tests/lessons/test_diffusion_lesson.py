@@ -54,11 +54,13 @@ def test_diffusers_guidance_convention_is_recognised(diffusion_lesson):
 
 
 def test_forgotten_unconditional_term_passes_only_w0(diffusion_lesson):
-    report = grade(diffusion_lesson, submission("diffusion", "wrong_guidance_forgets_unconditional.py"), seed=SEED)
+    report = grade(diffusion_lesson, submission("diffusion", "wrong_guidance_forgets_unconditional.py"),
+                   seed=SEED)
     lost = failed(report)
     assert f"{GUIDANCE}: guidance scale w = 0: the conditional prediction itself" not in lost
     assert len(lost) == 3 and report.score == 9.0
-    pipeline = lost[f"{GUIDANCE}: one reference DDIM step on your guided prediction lands where the reference's does"]
+    pipeline = lost[f"{GUIDANCE}: one reference DDIM step on your guided prediction lands where the "
+                    "reference's does"]
     assert "x_prev" in pipeline
 
 

@@ -43,7 +43,7 @@ def test_the_lesson_grades_the_8point_algorithm_the_decomposition_and_the_cheira
     assert {d.dataset for d in epipolar_lesson.datasets.values()} == {"correspondences"}
     assert all(d.seed == "fresh" for d in epipolar_lesson.datasets.values())
     stages = {c.stage for t in epipolar_lesson.tasks[1:] for c in t.checks}
-    assert stages == {"output", "pipeline"}  # the pose tasks are also checked through the rest of the pipeline
+    assert stages == {"output", "pipeline"}  # the pose tasks are checked through the rest of the pipeline too
 
 
 def test_reference_full_marks_and_starter_zero(epipolar_lesson):
@@ -74,7 +74,8 @@ def test_full_marks_and_the_right_losses_on_other_hidden_seeds(epipolar_lesson, 
 def test_the_missing_normalization_is_told_what_to_fix(epipolar_lesson):
     report = grade(epipolar_lesson, submission("epipolar", "wrong_no_normalization.py"), seed=SEED)
     (output,) = failed(report).values()
-    assert output.startswith("Check: noisy data: the normalized 8-point's F, rank 2, up to scale\nData: 300 random")
+    assert output.startswith("Check: noisy data: the normalized 8-point's F, rank 2, up to scale\n"
+                             "Data: 300 random")
     assert "relative difference after the best scale factor" in output and "allowed 1e-07" in output
     assert "Hint: your F is what the 8-point algorithm gives without normalization" in output
     assert "mean distance from it is sqrt(2)" in output and "rank 3" not in output
@@ -91,16 +92,17 @@ def test_the_reversed_cheirality_sign_is_recognised(epipolar_lesson):
     report = grade(epipolar_lesson, submission("epipolar", "wrong_cheirality_sign.py"), seed=SEED)
     lost = failed(report)
     assert set(lost) == {f"{CHEIRALITY}: exact data: the reference's pose",
-                         f"{CHEIRALITY}: data with wrong matches: the reference's pose (counting RANSAC's inliers "
-                         "only)",
-                         f"{CHEIRALITY}: data with wrong matches: the direction of t refined from your pose, as "
-                         "accurate as the reference's"}
+                         f"{CHEIRALITY}: data with wrong matches: the reference's pose (counting RANSAC's "
+                         "inliers only)",
+                         f"{CHEIRALITY}: data with wrong matches: the direction of t refined from your pose, "
+                         "as accurate as the reference's"}
     for output in lost.values():
         assert "Hint: your pose is the candidate (R" in output and "reversed" in output
         assert "positive depth" in output or "depth is positive" in output
-    refined = lost[f"{CHEIRALITY}: data with wrong matches: the direction of t refined from your pose, as accurate "
-                   "as the reference's"]
-    assert "metric translation_direction_error_deg after running the pipeline to refine_pose on your pose" in refined
+    refined = lost[f"{CHEIRALITY}: data with wrong matches: the direction of t refined from your pose, as "
+                   "accurate as the reference's"]
+    assert ("metric translation_direction_error_deg after running the pipeline to refine_pose on your pose"
+            in refined)
     assert "got 179." in refined or "got 180" in refined
 
 
@@ -108,8 +110,8 @@ def test_t_from_the_wrong_null_vector_is_caught_through_the_pipeline(epipolar_le
     report = grade(epipolar_lesson, submission("epipolar", "wrong_translation_from_v.py"), seed=SEED)
     lost = failed(report)
     assert set(lost) == {f"{FOUR}: exact data: the reference's four candidates, in order",
-                         f"{FOUR}: data with wrong matches: your candidates, then the lab's cheirality test: the "
-                         "direction of t as accurate as the reference's"}
+                         f"{FOUR}: data with wrong matches: your candidates, then the lab's cheirality test: "
+                         "the direction of t as accurate as the reference's"}
     pipeline = lost[f"{FOUR}: data with wrong matches: your candidates, then the lab's cheirality test: the "
                     "direction of t as accurate as the reference's"]
     assert "after running the pipeline to recover_pose on your candidates" in pipeline
@@ -146,4 +148,5 @@ def test_the_lessons_conventions_are_the_modules():
     assert PIPELINE.step("recover_pose").controls[0].name == "candidate"
     assert CANDIDATE_NAMES == ("R1 t", "R2 t", "R1 -t", "R2 -t")
     assert sorted(p.name for p in (SUBMISSIONS / "epipolar").glob("wrong_*.py")) == [
-        "wrong_cheirality_sign.py", "wrong_no_normalization.py", "wrong_no_rank2.py", "wrong_translation_from_v.py"]
+        "wrong_cheirality_sign.py", "wrong_no_normalization.py", "wrong_no_rank2.py",
+        "wrong_translation_from_v.py"]

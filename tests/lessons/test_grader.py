@@ -60,17 +60,20 @@ def test_the_starter_scores_zero_with_a_message_on_every_test(toy_lesson):
     report = grade(toy_lesson, toy_lesson.starter)
     assert report.score == 0.0 and len(report.tests) == 6
     for test in report.tests:
-        assert test.status == "failed" and "not implemented yet" in test.output and "NotImplementedError" in test.output
+        assert test.status == "failed" and "not implemented yet" in test.output
+        assert "NotImplementedError" in test.output
     jsonschema.validate(report.results_json(), RESULTS_SCHEMA)
 
 
 @pytest.mark.parametrize("fixture,failed,hint", [
     ("wrong_ignores_scale.py", {"Mean intensity: scale = 3"}, "you ignore the control scale"),
     ("wrong_sums.py", {"Mean intensity: same means as the reference", "Mean intensity: scale = 3",
-                       "Mean intensity: the instructor's data", "Mean intensity: normalized means from yours"},
+                       "Mean intensity: the instructor's data",
+                       "Mean intensity: normalized means from yours"},
      "right up to a scale factor"),
     ("wrong_no_clip.py", {"Noisy images: same noisy images as the reference",
-                          "Noisy images: the means of your noisy images"}, "your noisy pixels leave [0, 1]: clip them"),
+                          "Noisy images: the means of your noisy images"},
+     "your noisy pixels leave [0, 1]: clip them"),
 ])
 def test_wrong_implementations_lose_exactly_their_checks(toy_lesson, fixture, failed, hint):
     report = grade(toy_lesson, submission("toy", fixture))
@@ -89,13 +92,15 @@ def test_a_mistake_that_fails_while_grading_costs_its_hint_not_the_grading(tmp_p
     folder = tmp_path / toy_lesson.id
     shutil.copytree(toy_lesson.path, folder)
     mistakes = folder / "mistakes.py"
-    mistakes.write_text(mistakes.read_text().replace('"""Each image\'s sum instead of its mean."""',
-                                                     '"""Broken."""\n    raise RuntimeError("broken mistake")'))
+    docstring = '"""Each image\'s sum instead of its mean."""'
+    broken_text = '"""Broken."""\n    raise RuntimeError("broken mistake")'
+    mistakes.write_text(mistakes.read_text().replace(docstring, broken_text))
     broken = load_lesson(folder)
     report = grade(broken, submission("toy", "wrong_sums.py"), seed=3)
     lost = {t.name: t.output for t in report.tests if t.status == "failed"}
     assert set(lost) == {"Mean intensity: same means as the reference", "Mean intensity: scale = 3",
-                         "Mean intensity: the instructor's data", "Mean intensity: normalized means from yours"}
+                         "Mean intensity: the instructor's data",
+                         "Mean intensity: normalized means from yours"}
     assert "Expected:" in lost["Mean intensity: scale = 3"]
     assert not any("you sum each image's pixels" in output for output in lost.values())
     assert "you sum each image's pixels" in "".join(t.output for t in grade(toy_lesson, submission(
@@ -120,8 +125,8 @@ def test_visibility_comes_from_the_lesson(toy_lesson):
 
 def test_a_timeout_in_one_task_does_not_cost_the_next_task(toy_lesson):
     source = submission("toy", "solution.py").replace(
-        "def make_noisy(images, *, sigma=0.05, rng):\n", "def make_noisy(images, *, sigma=0.05, rng):\n    while True:\n"
-                                                         "        pass\n")
+        "def make_noisy(images, *, sigma=0.05, rng):\n",
+        "def make_noisy(images, *, sigma=0.05, rng):\n    while True:\n        pass\n")
     limits = toy_lesson.limits.replace(call_timeout_s=1.0)
     report = grade(toy_lesson, source, limits=limits)
     assert failed_checks(report) == {"Noisy images: same noisy images as the reference",
@@ -157,8 +162,8 @@ def test_seed_option_makes_grading_reproducible(toy_lesson):
 def test_seed_from_the_environment(toy_lesson):
     import dataclasses
 
-    lesson = dataclasses.replace(toy_lesson, datasets={
-        **toy_lesson.datasets, "secret": dataclasses.replace(toy_lesson.datasets["secret"], seed="env:TOY_SEED")})
+    secret = dataclasses.replace(toy_lesson.datasets["secret"], seed="env:TOY_SEED")
+    lesson = dataclasses.replace(toy_lesson, datasets={**toy_lesson.datasets, "secret": secret})
     assert draw_seeds(lesson, environ={"TOY_SEED": "99"})["secret"] == 99
     with pytest.raises(LabError, match="TOY_SEED, which is not set"):
         draw_seeds(lesson, environ={})
@@ -194,7 +199,7 @@ def test_a_check_dataset_runs_what_the_planner_plans_for_each_task_once(toy_less
     session = run.reference("make_noisy")
     assert [r.step for r in session.history] == ["make_noisy"]
     assert run.reference("mean_intensity") is session and run.reference("make_noisy") is session
-    assert [r.step for r in session.history] == ["make_noisy", "mean_intensity"]  # nothing twice, nothing more
+    assert [r.step for r in session.history] == ["make_noisy", "mean_intensity"]  # nothing twice or more
     assert session.ran_with["make_noisy"] == {"sigma": 0.05}  # the dataset's controls
 
 

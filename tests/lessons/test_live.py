@@ -49,9 +49,9 @@ def test_failures_are_step_failures_with_the_students_message(toy_lesson, sessio
         assert session.history[-1].status == "failed" and "means" not in session.state
         side = code.compare(session, "mean_intensity")
         assert side.passed is None and "not implemented" in side.message and "means" in side.reference
-    with StudentCode(toy_lesson, submission("abuse", "reads_files.py")) as code:
-        with pytest.raises(StudentCodeFailed, match="reading /etc/passwd is not allowed"):
-            session.run("mean_intensity", override=code.override("mean_intensity"))
+    with StudentCode(toy_lesson, submission("abuse", "reads_files.py")) as code, \
+            pytest.raises(StudentCodeFailed, match="reading /etc/passwd is not allowed"):
+        session.run("mean_intensity", override=code.override("mean_intensity"))
 
 
 def test_missing_functions_and_unknown_steps(toy_lesson):

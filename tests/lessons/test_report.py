@@ -30,8 +30,10 @@ def test_calibration_report_has_metrics_images_and_the_3d_scene(calibration_less
     assert "images_view_00.png" in images and "per_view_rms.png" in images
     assert (tmp_path / "report" / "images" / "images_view_00.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
     summary = json.loads((tmp_path / "report" / "report.json").read_text())
-    assert summary["dataset"] == "synthetic" and summary["options"]["noise_px"] == 1.0 and summary["seed"] == 1
-    assert summary["steps"][-2]["step"] == "refine_calibration" and summary["steps"][-2]["metrics"]["rms_px"] > 0
+    assert summary["dataset"] == "synthetic" and summary["options"]["noise_px"] == 1.0
+    assert summary["seed"] == 1
+    assert summary["steps"][-2]["step"] == "refine_calibration"
+    assert summary["steps"][-2]["metrics"]["rms_px"] > 0
 
 
 def test_run_lesson_stops_at_the_first_failing_step_and_names_it(toy_lesson):
@@ -41,7 +43,8 @@ def test_run_lesson_stops_at_the_first_failing_step_and_names_it(toy_lesson):
         raise ValueError("broken")
 
     pipeline = toy_lesson.pipeline
-    steps = tuple(dataclasses.replace(s, func=failing) if s.name == "mean_intensity" else s for s in pipeline.steps)
+    steps = tuple(dataclasses.replace(s, func=failing) if s.name == "mean_intensity" else s
+                  for s in pipeline.steps)
     lesson = dataclasses.replace(toy_lesson)
     lesson.__dict__["pipeline"] = dataclasses.replace(pipeline, steps=steps)  # the cached property, replaced
     run = run_lesson(lesson, seed=2)

@@ -75,7 +75,8 @@ def test_the_window_sum_instead_of_the_mean_is_recognised(stereo_lesson):
     lost = failed(report)
     assert len(lost) == 2 and report.score == 16.0  # winner-take-all does not see the factor
     for output in lost.values():
-        assert "Hint: your SSD is the window's sum, the lab's is its mean: divide by window * window" in output
+        assert ("Hint: your SSD is the window's sum, the lab's is its mean: divide by window * window"
+                in output)
 
 
 def test_the_exact_left_right_match_is_recognised(stereo_lesson):
@@ -85,8 +86,8 @@ def test_the_exact_left_right_match_is_recognised(stereo_lesson):
     mask = lost[f"{LR}: synthetic pair, max_difference = 1: the reference's mask"]
     assert "Hint: your mask keeps only pixels whose two disparities are equal" in mask
     assert f"{LR}: synthetic pair, max_difference = 0: the reference's mask" not in lost
-    pipeline = lost[f"{LR}: synthetic pair: the filtered disparity map built on your mask, bad-2 over all pixels "
-                    "as the reference's"]
+    pipeline = lost[f"{LR}: synthetic pair: the filtered disparity map built on your mask, bad-2 over all "
+                    "pixels as the reference's"]
     assert "after running the pipeline to filter_disparity on your consistent" in pipeline
 
 
@@ -95,7 +96,8 @@ def test_the_exact_left_right_match_is_recognised(stereo_lesson):
     ("wrong_wta_argmax.py", "Winner-take-all", "you keep the disparity of the highest cost"),
     ("wrong_lr_check_direction.py", LR, "you read the right image's disparity at x + d_L"),
 ])
-def test_mistakes_visible_only_in_the_steps_inputs_are_named(stereo_lesson, other_mistakes, fixture, task, hint):
+def test_mistakes_visible_only_in_the_steps_inputs_are_named(stereo_lesson, other_mistakes, fixture, task,
+                                                              hint):
     """lessons/03-stereo/mistakes.py: the grader runs the known wrong implementation on the same inputs, so
     a shift the wrong way or an argmax gets its hint on every check it fails, and on no other."""
     report = grade(stereo_lesson, submission("stereo", fixture), seed=SEED)
@@ -109,8 +111,9 @@ def test_mistakes_visible_only_in_the_steps_inputs_are_named(stereo_lesson, othe
 @pytest.fixture(scope="module")
 def other_mistakes(stereo_lesson) -> str:
     """What two other wrong submissions are told: no hint about a shift direction or an argmax."""
-    return "".join(output for other in ("wrong_no_window_aggregation.py", "wrong_lr_check_exact_match.py")
-                   for output in failed(grade(stereo_lesson, submission("stereo", other), seed=SEED)).values())
+    others = ("wrong_no_window_aggregation.py", "wrong_lr_check_exact_match.py")
+    reports = [grade(stereo_lesson, submission("stereo", other), seed=SEED) for other in others]
+    return "".join(output for report in reports for output in failed(report).values())
 
 
 def test_the_lessons_conventions_are_the_modules():

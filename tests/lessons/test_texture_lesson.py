@@ -84,14 +84,16 @@ def test_each_wrong_implementation_loses_exactly_its_checks(graded, name):
 
 def test_the_unweighted_ssd_is_told_to_use_the_gaussian(graded):
     report = graded("wrong_unweighted.py")
-    output = failed(report)["Masked, Gaussian-weighted SSD: gray sample: the reference's distances to every window"]
+    output = failed(report)["Masked, Gaussian-weighted SSD: gray sample: the reference's distances to "
+                            "every window"]
     assert output.startswith("Check: gray sample: the reference's distances to every window\nData: a 24 x 24")
     assert "Hint: your distances are the unweighted SSD" in output and "sigma = w / 6.4" in output
 
 
 def test_the_missing_normalization_is_recognised(graded):
     report = graded("wrong_not_normalized.py")
-    output = failed(report)["Masked, Gaussian-weighted SSD: gray sample: the reference's distances to every window"]
+    output = failed(report)["Masked, Gaussian-weighted SSD: gray sample: the reference's distances to "
+                            "every window"]
     assert "Hint: divide each sum by the total weight of the known pixels" in output
 
 
