@@ -43,8 +43,8 @@ def load(args):
     from lab.core import Image, ImageSet
     from lab.modules.sfm import rendered
 
-    loaded = rendered(scene=args.scene, path="orbit", num_views=args.views, width=args.width, height=args.height,
-                      arc_deg=args.arc)
+    loaded = rendered(scene=args.scene, path="orbit", num_views=args.views, width=args.width,
+                      height=args.height, arc_deg=args.arc)
     images = loaded.state["images"]
     quantized = [Image(np.round(np.clip(im.pixels, 0, 1) * 255).astype(np.uint8), name=im.name)
                  for im in images.images]
@@ -65,13 +65,15 @@ def run_ours(state, truth, seed: int = 0):
         seconds[spec.name] = time.perf_counter() - t
     elapsed = time.perf_counter() - start
     s = session.state
-    reg = np.flatnonzero(s["registered"])
-    poses = s["adjusted_poses"]
-    errors = pose_errors(poses[reg, :, :3], poses[reg, :, 3], truth["R"][reg], truth["t"][reg], truth["scene_size"])
+    model = s["adjusted_model"]  # the final SparseModel
+    reg = np.flatnonzero(model.registered)
+    poses = model.poses
+    errors = pose_errors(poses[reg, :, :3], poses[reg, :, 3], truth["R"][reg], truth["t"][reg],
+                         truth["scene_size"])
     filtered = session.metrics["bundle_adjust_all"]
-    return {"registered": int(len(reg)), "reproj_px": filtered["reprojection_mean_px"],
-            "track_length": filtered["mean_track_length"], "points": filtered["points_total"], "seconds": elapsed,
-            "step_seconds": seconds, **errors}
+    return {"registered": len(reg), "reproj_px": filtered["reprojection_mean_px"],
+            "track_length": filtered["mean_track_length"], "points": filtered["points_total"],
+            "seconds": elapsed, "step_seconds": seconds, **errors}
 
 
 def run_colmap(state, truth, folder: str):
@@ -98,30 +100,33 @@ def run_colmap(state, truth, folder: str):
     options.ba_refine_principal_point = False
     options.ba_refine_extra_params = False
     start = time.perf_counter()
-    pycolmap.extract_features(database, image_dir, camera_mode=pycolmap.CameraMode.SINGLE, reader_options=reader,
-                              device=pycolmap.Device.cpu)
+    pycolmap.extract_features(database, image_dir, camera_mode=pycolmap.CameraMode.SINGLE,
+                              reader_options=reader, device=pycolmap.Device.cpu)
     t_extract = time.perf_counter()
     pycolmap.match_exhaustive(database, device=pycolmap.Device.cpu)
     t_match = time.perf_counter()
-    models = pycolmap.incremental_mapping(database, image_dir, os.path.join(folder, "sparse"), options=options)
+    models = pycolmap.incremental_mapping(database, image_dir, os.path.join(folder, "sparse"),
+                                          options=options)
     elapsed = time.perf_counter() - start
     if not models:
-        return {"registered": 0, "reproj_px": float("nan"), "track_length": 0.0, "points": 0, "seconds": elapsed,
-                "rotation_error_deg": float("nan"), "rotation_error_max_deg": float("nan"),
-                "center_error_rel": float("nan"), "center_error_max_rel": float("nan")}
+        return {"registered": 0, "reproj_px": float("nan"), "track_length": 0.0, "points": 0,
+                "seconds": elapsed, "rotation_error_deg": float("nan"),
+                "rotation_error_max_deg": float("nan"), "center_error_rel": float("nan"),
+                "center_error_max_rel": float("nan")}
     model = max(models.values(), key=lambda m: m.num_reg_images())
-    index, R, t = [], [], []
+    found: list[int] = []
+    R, t = [], []
     for image in model.images.values():
         if not image.has_pose:
             continue
         pose = image.cam_from_world() if callable(image.cam_from_world) else image.cam_from_world
         matrix = pose.matrix()
-        index.append(names.index(image.name))
+        found.append(names.index(image.name))
         R.append(matrix[:, :3])
         t.append(matrix[:, 3])
-    index = np.array(index)
+    index = np.array(found)
     errors = pose_errors(np.array(R), np.array(t), truth["R"][index], truth["t"][index], truth["scene_size"])
-    return {"registered": int(len(index)), "reproj_px": float(model.compute_mean_reprojection_error()),
+    return {"registered": len(index), "reproj_px": float(model.compute_mean_reprojection_error()),
             "track_length": float(model.compute_mean_track_length()), "points": int(model.num_points3D()),
             "seconds": elapsed, "seconds_extract": t_extract - start, "seconds_match": t_match - t_extract,
             "seconds_map": elapsed - (t_match - start), **errors}
@@ -145,7 +150,8 @@ def main() -> None:
     ours = run_ours(state, truth)
     print(f"ours:   {ours['registered']}/{args.views} registered in {ours['seconds']:.1f} s")
     print("  our steps: " + ", ".join(f"{k} {v:.1f} s" for k, v in ours["step_seconds"].items()))
-    rows = [("registered images", "registered", "{:d}"), ("mean reprojection error (px)", "reproj_px", "{:.3f}"),
+    rows = [("registered images", "registered", "{:d}"),
+            ("mean reprojection error (px)", "reproj_px", "{:.3f}"),
             ("mean track length", "track_length", "{:.2f}"), ("points", "points", "{:d}"),
             ("rotation error, mean (deg)", "rotation_error_deg", "{:.4f}"),
             ("rotation error, max (deg)", "rotation_error_max_deg", "{:.4f}"),

@@ -1,4 +1,4 @@
-"""lab.data.reconstruction and lab.data.colmap: the sparse model, COLMAP text out and in (exactly), pycolmap."""
+"""lab.data.reconstruction and lab.data.colmap: the sparse model, COLMAP text out and in exactly, pycolmap."""
 
 import dataclasses
 
@@ -26,7 +26,8 @@ def _reconstruction(views: int = 4, count: int = 30, seed: int = 0, extra_keypoi
         Xc = X @ R[i].T + t[i]
         uv = Xc[:, :2] / Xc[:, 2:] @ K[i, :2, :2].T + K[i, :2, 2]
         seen = np.flatnonzero(rng.random(count) < 0.8)
-        order = rng.permutation(len(seen) + extra_keypoints)  # keypoints in random order, some without 3D point
+        # keypoints in random order, some without a 3D point
+        order = rng.permutation(len(seen) + extra_keypoints)
         points = np.concatenate([uv[seen], rng.uniform(0, 640, (extra_keypoints, 2))])[np.argsort(order)]
         ids = np.concatenate([seen, -np.ones(extra_keypoints, dtype=int)])[np.argsort(order)]
         keypoints.append(points)
@@ -34,8 +35,10 @@ def _reconstruction(views: int = 4, count: int = 30, seed: int = 0, extra_keypoi
             if j >= 0:
                 tracks[j].append((i, k))
     return SparseModel.from_tracks(K=K, sizes=np.tile([640, 480], (views, 1)), R=R, t=t,
-                                   names=tuple(f"view_{i:02d}.png" for i in range(views)), keypoints=tuple(keypoints),
-                                   points=X, colors=rng.integers(0, 256, (count, 3)), errors=rng.uniform(0, 1, count),
+                                   names=tuple(f"view_{i:02d}.png" for i in range(views)),
+                                   keypoints=tuple(keypoints),
+                                   points=X, colors=rng.integers(0, 256, (count, 3)),
+                                   errors=rng.uniform(0, 1, count),
                                    tracks=tuple(np.array(tr, dtype=np.int64).reshape(-1, 2) for tr in tracks))
 
 
@@ -126,7 +129,8 @@ def test_round_trip_is_exact_for_awkward_numbers(tmp_path):
     """Pixels whose +0.5 is not exactly invertible in floating point (tiny, negative, many digits)."""
     rec = _reconstruction(views=2, count=3)
     keypoints = list(rec.image_keypoints)
-    awkward = np.array([1e-20, -0.25, 0.1, 1 / 3, 123456.789012345678, -5e-324, 2.0**-30, 0.49999999999999994])
+    awkward = np.array([1e-20, -0.25, 0.1, 1 / 3, 123456.789012345678, -5e-324, 2.0**-30,
+                        0.49999999999999994])
     keypoints[0] = np.concatenate([rec.image_keypoints[0], np.stack([awkward, awkward[::-1]], axis=1)])
     K = rec.K.copy()
     K[0, 0, 2], K[1, 1, 2] = 0.1, 1e-17
@@ -137,7 +141,8 @@ def test_round_trip_is_exact_for_awkward_numbers(tmp_path):
 
 def test_round_trip_without_points_or_keypoints(tmp_path):
     rec = _reconstruction(views=2, count=3)
-    empty = SparseModel.from_tracks(rec.K, rec.sizes, rec.R, rec.t, rec.names, (np.zeros((0, 2)), np.zeros((0, 2))),
+    empty = SparseModel.from_tracks(rec.K, rec.sizes, rec.R, rec.t, rec.names,
+                                    (np.zeros((0, 2)), np.zeros((0, 2))),
                                     np.zeros((0, 3)), np.zeros((0, 3)), np.zeros(0), ())
     assert read_colmap_text(write_colmap_text(tmp_path, empty)).equals(empty)
 
@@ -182,10 +187,12 @@ def test_we_read_what_pycolmap_writes(tmp_path):
         pose = model.images[i + 1].cam_from_world()
         np.testing.assert_allclose(back.R[i], pose.rotation.matrix(), atol=1e-15)
         np.testing.assert_array_equal(back.t[i], pose.translation)
-        np.testing.assert_array_equal(back.image_keypoints[i], rec.image_keypoints[i])  # 17 digits: exact again
+        # 17 digits: exact again
+        np.testing.assert_array_equal(back.image_keypoints[i], rec.image_keypoints[i])
     np.testing.assert_array_equal(back.K, rec.K)
-    np.testing.assert_array_equal(back.points, np.array([model.points3D[j + 1].xyz for j in range(len(rec.points))]))
-    assert all(np.array_equal(a, b) for a, b in zip(back.tracks, rec.tracks))
+    np.testing.assert_array_equal(back.points,
+                                  np.array([model.points3D[j + 1].xyz for j in range(len(rec.points))]))
+    assert all(np.array_equal(a, b) for a, b in zip(back.tracks, rec.tracks, strict=True))
 
 
 def test_we_read_simple_pinhole_and_zero_distortion_models(tmp_path):
@@ -223,19 +230,20 @@ def test_read_names_the_file_and_line_of_a_malformed_entry(tmp_path):
     lines = (tmp_path / "points3D.txt").read_text().splitlines()
     lines[4] = "2 0.1 0.2"  # line 5: too few fields
     (tmp_path / "points3D.txt").write_text("\n".join(lines) + "\n")
-    with pytest.raises(InvalidValue, match="points3D.txt line 5"):
+    with pytest.raises(InvalidValue, match=r"points3D\.txt line 5"):
         read_colmap_text(tmp_path)
 
 
 def test_read_rejects_distortion_and_unknown_ids(tmp_path):
     write_colmap_text(tmp_path, _reconstruction(views=2, count=4))
     original = (tmp_path / "cameras.txt").read_text()
-    (tmp_path / "cameras.txt").write_text(original.replace("PINHOLE 640 480 700.0 705.0 320.0 240.0",
-                                                           "OPENCV 640 480 700.0 705.0 320.0 240.0 0.1 0 0 0"))
+    distorted = original.replace("PINHOLE 640 480 700.0 705.0 320.0 240.0",
+                                 "OPENCV 640 480 700.0 705.0 320.0 240.0 0.1 0 0 0")
+    (tmp_path / "cameras.txt").write_text(distorted)
     with pytest.raises(InvalidValue, match="distortion"):
         read_colmap_text(tmp_path)
     (tmp_path / "cameras.txt").write_text(original.replace("\n1 PINHOLE", "\n7 PINHOLE"))
-    with pytest.raises(InvalidValue, match="camera id 1 is not in cameras.txt"):
+    with pytest.raises(InvalidValue, match=r"camera id 1 is not in cameras\.txt"):
         read_colmap_text(tmp_path)
 
 
@@ -246,14 +254,14 @@ def test_read_rejects_a_track_that_disagrees_with_images(tmp_path):
     fields[-1] = str((int(fields[-1]) + 1) % 3)  # point the last observation at another keypoint
     lines[3] = " ".join(fields)
     (tmp_path / "points3D.txt").write_text("\n".join(lines) + "\n")
-    with pytest.raises(InvalidValue, match="does not match images.txt"):
+    with pytest.raises(InvalidValue, match=r"does not match images\.txt"):
         read_colmap_text(tmp_path)
 
 
 def test_read_rejects_a_missing_folder_or_file(tmp_path):
     with pytest.raises(InvalidValue, match="no such folder"):
         read_colmap_text(tmp_path / "nowhere")
-    with pytest.raises(InvalidValue, match="no cameras.txt"):
+    with pytest.raises(InvalidValue, match=r"no cameras\.txt"):
         read_colmap_text(tmp_path)
 
 

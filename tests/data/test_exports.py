@@ -51,7 +51,8 @@ def test_extrinsic_parameters_are_rodrigues_and_translation(tmp_path):
     angle = 0.3
     R = np.array([[np.cos(angle), -np.sin(angle), 0], [np.sin(angle), np.cos(angle), 0], [0, 0, 1]])
     path = write_opencv_calibration(tmp_path / "c.yaml", K, DIST, image_width=64, image_height=48,
-                                    rotations=np.stack([np.eye(3), R]), translations=[[0, 0, 1], [0.1, 0.2, 2]])
+                                    rotations=np.stack([np.eye(3), R]),
+                                    translations=[[0, 0, 1], [0.1, 0.2, 2]])
     storage = cv2.FileStorage(str(path), cv2.FILE_STORAGE_READ)
     try:
         extrinsics = storage.getNode("extrinsic_parameters").mat()
@@ -101,10 +102,13 @@ def test_write_value_formats(tmp_path):
                        Image(rng.random((4, 5, 3), dtype=np.float32), "b")))
     cloud = PointCloud(rng.random((7, 3)))
 
-    assert json.loads(write_value(tmp_path / "c.json", cloud, "json", name="cloud").read_text())["type"] == "PointCloud"
-    np.testing.assert_array_equal(np.load(write_value(tmp_path / "c.npy", cloud, "npy", name="cloud")), cloud.xyz)
+    written = write_value(tmp_path / "c.json", cloud, "json", name="cloud")
+    assert json.loads(written.read_text())["type"] == "PointCloud"
+    np.testing.assert_array_equal(np.load(write_value(tmp_path / "c.npy", cloud, "npy", name="cloud")),
+                                  cloud.xyz)
     png = cv2.imread(str(write_value(tmp_path / "deep" / "b.png", images, "png", name="images", index=1)))
-    np.testing.assert_array_equal(png[:, :, ::-1], np.clip(images[1].pixels * 255 + 0.5, 0, 255).astype(np.uint8))
+    np.testing.assert_array_equal(png[:, :, ::-1],
+                                  np.clip(images[1].pixels * 255 + 0.5, 0, 255).astype(np.uint8))
     assert write_value(tmp_path / "c.ply", cloud, "ply", name="cloud").read_bytes().startswith(b"ply")
 
 
@@ -114,5 +118,6 @@ def test_write_value_errors(tmp_path):
     with pytest.raises(InvalidValue, match="not a point cloud"):
         write_value(tmp_path / "x.ply", Image(np.zeros((2, 2), np.float32)), "ply", name="x")
     with pytest.raises(InvalidValue, match="index"):
-        write_value(tmp_path / "x.png", ImageSet((Image(np.zeros((2, 2), np.float32)),)), "png", name="x", index=3)
+        write_value(tmp_path / "x.png", ImageSet((Image(np.zeros((2, 2), np.float32)),)), "png", name="x",
+                    index=3)
     assert list(tmp_path.iterdir()) == []

@@ -53,7 +53,7 @@ def test_file_order_and_list_input_do_not_matter(tmp_path):
     folder = _write(tmp_path, {"matching1.txt": MATCHING1, "matching2.txt": MATCHING2})
     a = read_match_files(folder)
     b = read_match_files([folder / "matching2.txt", folder / "matching1.txt"])
-    assert all(np.array_equal(x, y) for x, y in zip(a.keypoints, b.keypoints))
+    assert all(np.array_equal(x, y) for x, y in zip(a.keypoints, b.keypoints, strict=True))
     assert [t.tolist() for t in a.tracks] == [t.tolist() for t in b.tracks]
 
 
@@ -102,7 +102,7 @@ def test_match_beyond_num_images_names_the_line(tmp_path):
 
 def test_bad_names_and_missing_files(tmp_path):
     (tmp_path / "matches.txt").write_text(MATCHING1)
-    with pytest.raises(InvalidValue, match="matching<i>.txt"):
+    with pytest.raises(InvalidValue, match=r"matching<i>\.txt"):
         read_match_files(tmp_path / "matches.txt")
     with pytest.raises(InvalidValue, match="no matching"):
         read_match_files(tmp_path)

@@ -25,7 +25,8 @@ def _reconstruction(views: int = 5, shared: bool = True, seed: int = 0) -> Spars
     return SparseModel.from_tracks(K=K, sizes=np.tile([640, 480], (views, 1)), R=R, t=t,
                                    names=tuple(f"frame_{i:03d}.png" for i in range(views)),
                                    keypoints=tuple(np.zeros((0, 2)) for _ in range(views)), points=xyz,
-                                   colors=rng.integers(0, 256, (20, 3)), errors=np.zeros(20), tracks=((),) * 20)
+                                   colors=rng.integers(0, 256, (20, 3)), errors=np.zeros(20),
+                                   tracks=((),) * 20)
 
 
 def test_write_smoke_and_layout(tmp_path):
@@ -41,7 +42,8 @@ def test_write_smoke_and_layout(tmp_path):
 
 
 def test_identity_pose_known_answer():
-    np.testing.assert_array_equal(camera_to_world_opengl(np.eye(3), np.zeros(3)), np.diag([1.0, -1.0, -1.0, 1.0]))
+    np.testing.assert_array_equal(camera_to_world_opengl(np.eye(3), np.zeros(3)),
+                                  np.diag([1.0, -1.0, -1.0, 1.0]))
 
 
 def test_transform_matrix_is_opengl_camera_to_world():
@@ -72,7 +74,7 @@ def test_only_registered_views_are_written(tmp_path):
     rec = _reconstruction()
     fields = {f.name: getattr(rec, f.name) for f in dataclasses.fields(SparseModel)}
     part = SparseModel(**{**fields, "registered": np.array([True, False, True, True, False])})
-    K, sizes, R, t, names = read_transforms_json(write_transforms_json(tmp_path / "t.json", part))
+    _, _, R, t, names = read_transforms_json(write_transforms_json(tmp_path / "t.json", part))
     assert names == ("images/frame_000.png", "images/frame_002.png", "images/frame_003.png")
     np.testing.assert_allclose(R, rec.R[[0, 2, 3]], atol=1e-14)
     np.testing.assert_allclose(t, rec.t[[0, 2, 3]], atol=1e-12)
@@ -84,9 +86,10 @@ def test_read_instant_ngp_variant(tmp_path):
     c2w = camera_to_world_opengl(rec.R, rec.t)
     angle = 2 * math.atan(320 / 500)
     data = {"camera_angle_x": angle, "w": 640, "h": 480,
-            "frames": [{"file_path": f"./images/{i}", "transform_matrix": c2w[i][:3].tolist()} for i in range(2)]}
+            "frames": [{"file_path": f"./images/{i}",
+                        "transform_matrix": c2w[i][:3].tolist()} for i in range(2)]}
     (tmp_path / "transforms.json").write_text(json.dumps(data))
-    K, sizes, R, t, names = read_transforms_json(tmp_path / "transforms.json")
+    K, _, R, _, names = read_transforms_json(tmp_path / "transforms.json")
     np.testing.assert_allclose(K[0], [[500, 0, 319.5], [0, 500, 239.5], [0, 0, 1]], atol=1e-9)
     np.testing.assert_allclose(R, rec.R, atol=1e-12)
     assert names == ("./images/0", "./images/1")
@@ -145,4 +148,7 @@ def test_export_registry_writes_transforms_json(tmp_path):
     path = write_reconstruction(tmp_path / "transforms.json", rec, "transforms-json", image_folder="frames")
     K, sizes, R, t, names = read_transforms_json(path)
     np.testing.assert_allclose(R, rec.R, atol=1e-14)
+    np.testing.assert_allclose(t, rec.t, atol=1e-12)
+    np.testing.assert_allclose(K, rec.K, atol=1e-12)
+    np.testing.assert_array_equal(sizes, rec.sizes)
     assert names[0] == "frames/frame_000.png"

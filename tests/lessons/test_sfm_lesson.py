@@ -32,7 +32,8 @@ HINTS = {
     "wrong_sparsity_missing_points.py": "your pattern marks each observation's 6 camera columns only",
     "wrong_sparsity_point_offset.py": "your point blocks start at column 3 p_i",
     "wrong_sparsity_u_rows_only.py": "your pattern marks only row 2 i (the u residual) of each observation",
-    "wrong_triangulation_two_views.py": "your points are triangulated from the first two cameras that see them only",
+    "wrong_triangulation_two_views.py":
+        "your points are triangulated from the first two cameras that see them only",
     "wrong_triangulation_without_K.py": "your projection matrices are [R_v | t_v] without K",
 }
 
@@ -68,7 +69,8 @@ def test_a_rotation_not_projected_onto_so3_is_told(graded):
     report = graded("wrong_no_orthonormalization.py")
     lost = failed(report)
     rotation = lost["Linear PnP: noisy data: every R is a rotation (R^T R = I, det R = +1)"]
-    assert "metric orthonormality_linear after running the pipeline to refine_poses on your poses_linear" in rotation
+    assert ("metric orthonormality_linear after running the pipeline to refine_poses on your poses_linear"
+            in rotation)
     assert "needed at most 1e-09" in rotation
     assert report.score == 26.0  # the refinement starts from the nearest rotation: the rest is right
 
@@ -87,8 +89,8 @@ def test_the_unnormalized_pnp_is_recognised_on_noisy_data_only(graded):
     report = graded("wrong_no_normalization.py")
     lost = failed(report)
     assert "Linear PnP: exact data: the true poses [R | t]" not in lost
-    refined = lost["Linear PnP: noisy data: the poses refined from yours (non-linear PnP) as close to the truth as "
-                   "the reference's"]
+    refined = lost["Linear PnP: noisy data: the poses refined from yours (non-linear PnP) as close to the "
+                   "truth as the reference's"]
     assert "metric rotation_error_deg after running the pipeline to refine_poses" in refined
     assert "so at most" in refined
 
@@ -96,8 +98,8 @@ def test_the_unnormalized_pnp_is_recognised_on_noisy_data_only(graded):
 def test_two_view_triangulation_loses_only_the_noisy_comparison(graded):
     report = graded("wrong_triangulation_two_views.py")
     (output,) = failed(report).values()
-    assert output.startswith("Check: noisy data: the reference's points (DLT in pixels over every camera that sees "
-                             "the point)\nData: 60 points")
+    assert output.startswith("Check: noisy data: the reference's points (DLT in pixels over every camera "
+                             "that sees the point)\nData: 60 points")
     assert "Failed: points_linear: largest difference" in output
 
 
@@ -107,7 +109,8 @@ def test_a_pattern_without_point_blocks_shows_in_the_bundle(graded):
     prefix = "Sparsity pattern of the bundle-adjustment Jacobian: noisy data: "
     missing = lost[prefix + "no entry the Jacobian has is left out (each row: its camera's 6 columns and its "
                             "point's 3)"]
-    assert "metric sparsity_missing after running the pipeline to bundle_adjust_scene on your sparsity" in missing
+    assert ("metric sparsity_missing after running the pipeline to bundle_adjust_scene on your sparsity"
+            in missing)
     assert prefix + "no entry marked that the Jacobian never has" not in lost
     bundle = lost[prefix + "bundle adjustment with your pattern, final reprojection RMS as the reference's"]
     assert "metric ba_rms_px" in bundle and "(1.001 x reference + 1e-06)" in bundle
@@ -117,7 +120,8 @@ def test_a_pattern_with_every_entry_loses_the_comparisons_but_not_the_bundle(sfm
     """Extra entries only cost evaluations: the bundle still reaches the reference's error."""
     source = ("import numpy as np\n" + submission("sfm", "solution.py").split("def jacobian_sparsity")[0]
               + "def jacobian_sparsity(camera_indices, point_indices, num_cameras, num_points):\n"
-                "    return np.ones((2 * len(camera_indices), 6 * num_cameras + 3 * num_points), dtype=bool)\n")
+                "    return np.ones((2 * len(camera_indices), 6 * num_cameras + 3 * num_points),\n"
+                "                   dtype=bool)\n")
     report = grade(sfm_lesson, source, seed=SEED)
     prefix = "Sparsity pattern of the bundle-adjustment Jacobian: "
     assert set(failed(report)) == {prefix + "exact data: the reference's pattern, entry by entry",
@@ -144,7 +148,8 @@ def test_the_mistakes_dlt_with_hartleys_normalization_is_the_labs(sfm_lesson):
     rebuilt = mistakes["_poses_from"](mistakes["_dlt_matrices"](*inputs, hartley=True), project_onto_so3=True)
     np.testing.assert_allclose(rebuilt, reference, rtol=0, atol=1e-10)
     assert np.any(reference[:, 2, 3] < 0)  # a camera with the world origin behind it: the sign mistake shows
-    for mistake in ("pnp_without_normalization", "pnp_without_orthonormalization", "pnp_sign_from_last_entry"):
+    for mistake in ("pnp_without_normalization", "pnp_without_orthonormalization",
+                    "pnp_sign_from_last_entry"):
         assert np.abs(mistakes[mistake](*inputs) - reference).max() > 1e-6, mistake
 
 
@@ -152,7 +157,8 @@ def test_a_hint_compares_as_it_says_so_right_poses_times_two_get_no_sign_hint(sf
     """The sign mistake is +-1 times the right pose per camera, so its pipeline-stage hints compare with
     allclose (compare = "allclose" in tasks.toml), not up to scale: 2 [R | t] is not told it flipped signs."""
     source = submission("sfm", "solution.py").replace("def estimate_poses_linear(", "def _right_poses(")
-    source += "\n\ndef estimate_poses_linear(*args, **kwargs):\n    return 2.0 * _right_poses(*args, **kwargs)\n"
+    source += ("\n\ndef estimate_poses_linear(*args, **kwargs):\n"
+               "    return 2.0 * _right_poses(*args, **kwargs)\n")
     lost = failed(grade(sfm_lesson, source, seed=SEED))
     assert lost and all(name.startswith("Linear PnP") for name in lost)
     assert not any(HINTS["wrong_sign_from_last_entry.py"] in output for output in lost.values())

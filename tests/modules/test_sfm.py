@@ -7,13 +7,13 @@ One session runs the whole pipeline once per module (about 15 s); other tests bu
 import numpy as np
 import pytest
 
-from lab.core import (Cameras, Curve, Image, ImageSet, InvalidValue, Loaded, MissingInput, PointCloud, Points2D,
-                      Progress, Session, open_session)
+from lab.core import (Cameras, Curve, Image, ImageSet, InvalidValue, Loaded, MissingInput, PointCloud,
+                      Points2D, Progress, Session, open_session)
 from lab.geometry.rotations import rotvec_to_matrix
 from lab.modules import MODULES, get_pipeline
 from lab.modules.sfm import (MODEL_STAGES, PIPELINE, SIFT_OFFSET_PX, SparseModel, align_poses, build_tracks,
-                             choose_initial_pair, detect_all_features, image_pairs, pose_errors, split_inconsistent,
-                             umeyama)
+                             choose_initial_pair, detect_all_features, image_pairs, pose_errors,
+                             split_inconsistent, umeyama)
 
 OPTIONS = {"num_views": 6, "width": 320, "height": 240}
 STEPS = [spec.name for spec in PIPELINE.steps]
@@ -24,8 +24,8 @@ def run():
     session = open_session(PIPELINE, "rendered", OPTIONS, seed=0)
     progress: list[Progress] = []
     for name in STEPS:
-        session.run(name, on_progress=(lambda step, p: progress.append(p)) if name == "reconstruct_incrementally"
-                    else None)
+        watch = name == "reconstruct_incrementally"
+        session.run(name, on_progress=(lambda step, p: progress.append(p)) if watch else None)
     return session, progress
 
 
@@ -108,16 +108,18 @@ def test_model_tracks_see_each_image_once(run):
     session, _ = run
     s = session.state
     tracks, views = s["model"].track_of, s["keypoints"].view
-    for later in ("filtered_model", "adjusted_model"):  # filtering and adjusting keep the incremental step's tracks
+    for later in ("filtered_model", "adjusted_model"):  # filtering and adjusting keep the incremental tracks
         np.testing.assert_array_equal(s[later].track_of, tracks)
     labelled = tracks >= 0
     pairs = np.column_stack([tracks[labelled], views[labelled]])
     assert len(np.unique(pairs, axis=0)) == len(pairs)
-    # every point's track still has keypoints, and the observations are exactly the used keypoints of the tracks
+    # every point's track still has keypoints, and the observations are exactly the used keypoints of the
+    # tracks
     assert np.all(np.isin(s["filtered_model"].point_tracks, tracks[labelled]))
     counts = np.bincount(s["observations"].ids, minlength=len(s["adjusted_model"].points))
     assert counts.min() >= 2
-    # two-view tracks are ignored (COLMAP's ignore_two_view_tracks): every point's track has three keypoints or more
+    # two-view tracks are ignored (COLMAP's ignore_two_view_tracks): every point's track has three keypoints
+    # or more
     lengths = np.bincount(tracks[labelled])
     assert lengths[s["model"].point_tracks].min() >= 3
     initial = s["track_of"]
@@ -128,8 +130,8 @@ def test_model_tracks_see_each_image_once(run):
 def test_without_completion_or_two_view_filter_tracks_are_shorter(run):
     session, _ = run
     s = session.state
-    state = {name: s[name] for name in ("images", "K", "keypoints", "descriptors", "inlier_matches", "track_of",
-                                        "initial_pair", "initial_pose")}
+    state = {name: s[name] for name in ("images", "K", "keypoints", "descriptors", "inlier_matches",
+                                        "track_of", "initial_pair", "initial_pose")}
     plain = Session(PIPELINE, Loaded(dict(state)), dataset="rendered", seed=0)
     plain.run("triangulate_initial", {"ignore_two_view_tracks": False})
     plain.run("refine_initial_points")
@@ -200,11 +202,13 @@ def test_the_pipeline_exports_its_adjusted_model_as_colmap_and_transforms_json(r
             assert np.linalg.norm(x[:2] / x[2] - rec.image_keypoints[image][keypoint]) < 2.0
     assert sorted(PIPELINE.exports) == ["colmap", "transforms-json"]
     colmap = PIPELINE.export("colmap")
-    assert colmap.reads == ("adjusted_model",) and PIPELINE.producer("adjusted_model").name == "bundle_adjust_all"
+    assert colmap.reads == ("adjusted_model",)
+    assert PIPELINE.producer("adjusted_model").name == "bundle_adjust_all"
     folder = colmap.write(session.state, session.metrics, tmp_path / "colmap")
     assert read_colmap_text(folder).equals(rec)
-    written = PIPELINE.export("transforms-json").write(session.state, session.metrics, tmp_path / "transforms.json")
-    K, sizes, R, t, names = read_transforms_json(written)
+    written = PIPELINE.export("transforms-json").write(session.state, session.metrics,
+                                                       tmp_path / "transforms.json")
+    K, _, R, t, names = read_transforms_json(written)
     np.testing.assert_allclose(R, rec.R, atol=1e-12)
     np.testing.assert_allclose(t, rec.t, atol=1e-12)
     np.testing.assert_allclose(K, rec.K, atol=1e-9)
@@ -252,7 +256,8 @@ def test_build_tracks_splits_an_inconsistent_component_and_keeps_its_consistent_
     result = build_tracks(keypoints, inconsistent)
     assert result.inconsistent_tracks == 1 and result.split_tracks == 1
     assert result.tracks == 1 and result.cut_matches == 2 and result.dropped_keypoints == 2
-    np.testing.assert_array_equal(result.track_of, [0, -1, 0, 0, -1])  # the chain 0 - 2 - 3, first edges first
+    # the chain 0 - 2 - 3, first edges first
+    np.testing.assert_array_equal(result.track_of, [0, -1, 0, 0, -1])
     # with descriptors the closest matches are joined first: 1 - 2 - 4 is kept instead
     descriptors = np.zeros((5, 128), dtype=np.float32)
     descriptors[:, 0] = 1.0
@@ -282,7 +287,8 @@ def test_split_inconsistent_never_puts_one_view_twice_in_a_set():
 
 
 def _three_view_model(offset_px: float, *, descriptor_far: bool = False):
-    """One point seen in views 0 and 1 (track 0); view 2 registered with a free keypoint ``offset_px`` from its
+    """One point seen in views 0 and 1 (track 0); view 2 registered with a free keypoint ``offset_px`` from
+    its
     projection, plus a far keypoint elsewhere."""
     from lab.modules.sfm import GrowingModel, keypoint_trees
 
@@ -311,12 +317,13 @@ def test_track_completion_attaches_a_registered_views_observation_within_the_thr
 
     model, K, keypoints, track_of, descriptors, trees = _three_view_model(offset_px)
     sizes = np.array([[320.0, 240.0]] * 3)
-    completed, merged = complete_and_merge(model, K, keypoints, track_of, unit_descriptors(descriptors), trees, sizes,
+    completed, merged = complete_and_merge(model, K, keypoints, track_of, unit_descriptors(descriptors),
+                                           trees, sizes,
                                             max_error_px=2.0, max_descriptor_distance=0.5)
     assert merged == 0
     assert completed == int(attached)
     assert track_of.tolist() == ([0, 0, 0, -1] if attached else [0, 0, -1, -1])
-    kp, views, point = model.observations(keypoints, track_of)
+    _, views, _ = model.observations(keypoints, track_of)
     assert sorted(views.tolist()) == ([0, 1, 2] if attached else [0, 1])
 
 
@@ -325,7 +332,8 @@ def test_track_completion_rejects_a_keypoint_that_looks_different():
 
     model, K, keypoints, track_of, descriptors, trees = _three_view_model(0.5, descriptor_far=True)
     sizes = np.array([[320.0, 240.0]] * 3)
-    completed, _ = complete_and_merge(model, K, keypoints, track_of, unit_descriptors(descriptors), trees, sizes,
+    completed, _ = complete_and_merge(model, K, keypoints, track_of, unit_descriptors(descriptors), trees,
+                                      sizes,
                                        max_error_px=2.0, max_descriptor_distance=0.5)
     assert completed == 0 and track_of.tolist() == [0, 0, -1, -1]
 
@@ -336,10 +344,12 @@ def test_track_merging_joins_two_points_of_one_3d_point():
     model, K, keypoints, _, _, _ = _three_view_model(0.3)
     # point A (track 0) seen in views 0 and 1; point B (track 1), 2 mm away, seen in views 2 and 3 (view 3 at
     # view 0's place): no image in common and A projects onto B's observations, so they are one point
-    keypoints = Points2D(np.vstack([keypoints.xy, keypoints.xy[0] + [0.2, 0.1]]), view=np.array([0, 1, 2, 2, 3]))
+    keypoints = Points2D(np.vstack([keypoints.xy, keypoints.xy[0] + [0.2, 0.1]]),
+                         view=np.array([0, 1, 2, 2, 3]))
     poses = np.concatenate([model.poses, model.poses[:1]])
     points = np.vstack([model.points, model.points[0] + [0.002, 0.0, 0.0]])
-    model = GrowingModel(poses, np.ones(4, dtype=bool), points.copy(), np.array([0, 1]), np.ones(5, dtype=bool))
+    model = GrowingModel(poses, np.ones(4, dtype=bool), points.copy(), np.array([0, 1]),
+                         np.ones(5, dtype=bool))
     track_of = np.array([0, 0, 1, -1, 1])
     K = np.repeat(K[:1], 4, axis=0)
     completed, merged = complete_and_merge(model, K, keypoints, track_of, unit_descriptors(np.ones((5, 128))),
@@ -438,7 +448,8 @@ def test_no_pair_at_all_is_a_clear_error(run):
     session, _ = run
     s = session.state
     state = {name: s[name] for name in ("images", "keypoints", "descriptors", "K")}
-    empty = Session(PIPELINE, Loaded(dict(state, matches=np.zeros((0, 4), dtype=np.int64))), dataset="rendered")
+    empty = Session(PIPELINE, Loaded(dict(state, matches=np.zeros((0, 4), dtype=np.int64))),
+                    dataset="rendered")
     empty.run("verify_pairs")
     empty.run("build_tracks")
     with pytest.raises(InvalidValue, match="no verified image pair"):
@@ -469,7 +480,8 @@ def test_course_match_files_run_from_verification(run, tmp_path):
         cv2.imwrite(str(tmp_path / f"view{v:02d}.png"),
                     cv2.cvtColor(np.round(image.pixels * 255).astype(np.uint8), cv2.COLOR_RGB2BGR))
     K = s["K"][0]
-    (tmp_path / "calibration.txt").write_text("\n".join(" ".join(repr(float(x)) for x in row) for row in K) + "\n")
+    rows = (" ".join(repr(float(x)) for x in row) for row in K)
+    (tmp_path / "calibration.txt").write_text("\n".join(rows) + "\n")
     for v in range(len(images)):
         rows = []
         for k in np.flatnonzero((keypoints.view == v) & (track_of >= 0)):
@@ -477,9 +489,11 @@ def test_course_match_files_run_from_verification(run, tmp_path):
             if not len(others):
                 continue
             r, g, b = np.round(keypoints.colors[k] * 255).astype(int)
-            fields = [1 + len(others), r, g, b, repr(float(keypoints.xy[k, 0])), repr(float(keypoints.xy[k, 1]))]
+            fields = [1 + len(others), r, g, b, repr(float(keypoints.xy[k, 0])),
+                      repr(float(keypoints.xy[k, 1]))]
             for o in others:
-                fields += [int(keypoints.view[o]) + 1, repr(float(keypoints.xy[o, 0])), repr(float(keypoints.xy[o, 1]))]
+                fields += [int(keypoints.view[o]) + 1, repr(float(keypoints.xy[o, 0])),
+                           repr(float(keypoints.xy[o, 1]))]
             rows.append(" ".join(str(f) for f in fields))
         (tmp_path / f"matching{v + 1}.txt").write_text(f"nFeatures: {len(rows)}\n" + "\n".join(rows) + "\n")
     course = open_session(PIPELINE, "match_files", {"path": str(tmp_path)}, seed=0)

@@ -1,12 +1,13 @@
-"""lab.modules.sfm.datasets: rendered multi-view scenes with exact truth, a folder of photos, the course's match files."""
+"""lab.modules.sfm.datasets: rendered multi-view scenes with exact truth, a folder of photos, the course's
+match files."""
 
 import cv2
 import numpy as np
 import pytest
 
 from lab.core import ImageSet, Image, InvalidControl, InvalidValue
-from lab.modules.sfm import (FOCAL_GUESS_FACTOR, PIPELINE, camera_path, check_intrinsics, exif_focal_px, match_files,
-                             photos, read_k_matrix, rendered, scene_extent)
+from lab.modules.sfm import (FOCAL_GUESS_FACTOR, PIPELINE, camera_path, check_intrinsics, exif_focal_px,
+                             match_files, photos, read_k_matrix, rendered, scene_extent)
 
 SMALL = dict(num_views=3, width=96, height=72, supersample=1, noise=0.0)
 
@@ -23,7 +24,8 @@ def test_rendered_smoke_and_shapes(small):
     assert images[0].pixels.shape == (72, 96, 3)
     assert K.shape == (3, 3, 3)
     truth = small.truth
-    assert truth["R"].shape == (3, 3, 3) and truth["t"].shape == (3, 3) and truth["depth"].shape == (3, 72, 96)
+    assert truth["R"].shape == (3, 3, 3) and truth["t"].shape == (3, 3) and truth["depth"].shape == (3, 72,
+                                                                                                     96)
     assert set(small.state) == {"images", "K"}  # truth is never in the state
     assert truth["scene_size"] > 0
 

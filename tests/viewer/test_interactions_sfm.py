@@ -31,8 +31,10 @@ def two_camera_model():
             pixels.append(x[:2] / x[2])
     pixels = np.array(pixels)
     pixels[3] += [3.0, 0.0]
-    return SparseModel(K=np.stack([K, K]), poses=poses, registered=np.ones(2, dtype=bool), names=("a.png", "b.png"),
-                       sizes=np.array([[100, 80], [100, 80]]), keypoints=Points2D(pixels, view=np.array([0, 1, 0, 1])),
+    return SparseModel(K=np.stack([K, K]), poses=poses, registered=np.ones(2, dtype=bool),
+                       names=("a.png", "b.png"),
+                       sizes=np.array([[100, 80], [100, 80]]),
+                       keypoints=Points2D(pixels, view=np.array([0, 1, 0, 1])),
                        track_of=np.array([0, 0, 1, 1]), observed=np.ones(4, dtype=bool), points=points,
                        point_tracks=np.array([0, 1]), colors=np.zeros((2, 3)), errors=np.array([0.0, 1.5]))
 
@@ -109,7 +111,8 @@ def test_pick_a_point_shows_its_track(view, reconstructed):
     expected = np.flatnonzero(reconstructed["observations"].ids == 0)
     assert len(observations) == len(expected) >= 2
     assert all(o.error_px < 2.0 for o in observations)  # the filter kept only these
-    assert {f"{EXPLORE_ROOT}/sfm/track", f"{EXPLORE_ROOT}/sfm/point"} <= {part.ctx.node(n) for n in part.scene_nodes()}
+    assert {f"{EXPLORE_ROOT}/sfm/track",
+            f"{EXPLORE_ROOT}/sfm/point"} <= {part.ctx.node(n) for n in part.scene_nodes()}
     assert "seen in" in part.table.content
     # a click ray through the point picks it
     center = observations[0].center
