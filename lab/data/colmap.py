@@ -29,6 +29,7 @@ writers' files are read from the quaternion alone.
 from __future__ import annotations
 
 import decimal
+from typing import Any
 from pathlib import Path
 
 import numpy as np
@@ -203,24 +204,10 @@ def _read_cameras(path: Path) -> dict[int, tuple[np.ndarray, tuple[int, int]]]:
     return cameras
 
 
-def read_colmap_text(folder: str | Path) -> SparseModel:
-    """Read a COLMAP text model (cameras.txt, images.txt, points3D.txt) from ``folder``.
-
-    Images are ordered by ``IMAGE_ID`` (all registered), points by ``POINT3D_ID`` (each its own
-    track, :meth:`~lab.data.reconstruction.SparseModel.from_tracks`).
-    Pixels move by -0.5 to the lab's convention (module docstring). Raises :class:`InvalidValue`
-    naming the file and line of anything malformed, an unknown camera or image id, a track that
-    disagrees with the images' ``POINT3D_ID``, or a camera with lens distortion.
-
-    Reads what ``pycolmap.Reconstruction.write_text`` writes (rigs.txt and frames.txt, if
-    present, are ignored: one camera per image).
-    """
-    root = Path(folder)
-    if not root.is_dir():
-        raise InvalidValue("folder", f"no such folder: {str(root)!r}")
-    cameras = _read_cameras(root / "cameras.txt")
-
-    source = _Lines(root / "images.txt")
+def _read_images(path: Path,
+                 cameras: dict[int, tuple[np.ndarray, tuple[int, int]]]) -> dict[int, tuple[Any, ...]]:
+    """images.txt: ``{image id: (R, t, camera id, name, keypoints, point ids, line number)}``."""
+    source = _Lines(path)
     images = {}  # image id -> (R, t, camera id, name, keypoints, point ids, line number)
     pending_rotation = None
     lines = source.lines
@@ -272,10 +259,14 @@ def read_colmap_text(folder: str | Path) -> SparseModel:
         except (ValueError, decimal.InvalidOperation):
             raise source.error(number, "POINTS2D must be numbers X Y and an integer POINT3D_ID") from None
         images[image_id] = (R, t, camera_id, name, keypoints, point_ids, number)
-    order = sorted(images)
-    index_of = {image_id: i for i, image_id in enumerate(order)}
+    return images
 
-    points_source = _Lines(root / "points3D.txt")
+
+def _read_points(path: Path, images: dict[int, tuple[Any, ...]]) -> dict[int, tuple[Any, ...]]:
+    """points3D.txt: ``{point id: (xyz, rgb, error, track as (image index, keypoint) rows)}``, checked
+    against the images' ``POINT3D_ID``."""
+    index_of = {image_id: i for i, image_id in enumerate(sorted(images))}
+    points_source = _Lines(path)
     points = {}
     for number, line in enumerate(points_source.lines, start=1):
         line = line.strip()
@@ -310,8 +301,28 @@ def read_colmap_text(folder: str | Path) -> SparseModel:
                                           ")")
             converted[k] = (index_of[image_id], keypoint)
         points[point_id] = (xyz, rgb, error, converted)
-    point_order = sorted(points)
+    return points
 
+
+def read_colmap_text(folder: str | Path) -> SparseModel:
+    """Read a COLMAP text model (cameras.txt, images.txt, points3D.txt) from ``folder``.
+
+    Images are ordered by ``IMAGE_ID`` (all registered), points by ``POINT3D_ID`` (each its own
+    track, :meth:`~lab.data.reconstruction.SparseModel.from_tracks`).
+    Pixels move by -0.5 to the lab's convention (module docstring). Raises :class:`InvalidValue`
+    naming the file and line of anything malformed, an unknown camera or image id, a track that
+    disagrees with the images' ``POINT3D_ID``, or a camera with lens distortion.
+
+    Reads what ``pycolmap.Reconstruction.write_text`` writes (rigs.txt and frames.txt, if
+    present, are ignored: one camera per image).
+    """
+    root = Path(folder)
+    if not root.is_dir():
+        raise InvalidValue("folder", f"no such folder: {str(root)!r}")
+    cameras = _read_cameras(root / "cameras.txt")
+    images = _read_images(root / "images.txt", cameras)
+    points = _read_points(root / "points3D.txt", images)
+    order, point_order = sorted(images), sorted(points)
     return SparseModel.from_tracks(
         K=np.array([cameras[images[i][2]][0] for i in order]).reshape(-1, 3, 3),
         sizes=np.array([cameras[images[i][2]][1] for i in order], dtype=np.int64).reshape(-1, 2),
