@@ -90,8 +90,8 @@ def match_pair_image(image1: Image, image2: Image, x1: np.ndarray, x2: np.ndarra
         colors = [UNCLASSIFIED_COLOR] * len(x1)
     else:
         colors = [INLIER_COLOR if keep else OUTLIER_COLOR for keep in np.asarray(inliers, dtype=bool)]
-    joined = np.unique(np.linspace(0, len(x1) - 1,
-                                   min(len(x1), max_lines)).round().astype(int)) if len(x1) else []
+    joined: np.ndarray = np.unique(np.linspace(0, len(x1) - 1, min(len(x1), max_lines)).round().astype(int)) \
+        if len(x1) else np.zeros(0, int)
     for i in joined:
         cv2.line(canvas, tuple(int(v) for v in a[i]), tuple(int(v) for v in b[i]), colors[i], 1, cv2.LINE_AA,
                  shift)

@@ -118,8 +118,8 @@ def overlay_view(image: Image, overlays: Iterable[Points2D | Segments2D] = (), *
     radius = max(2.0, min(rgb.shape[:2]) / 120.0)
     n_points = n_segments = 0
     overlays = list(overlays)
-    in_order = [*(o for o in overlays if isinstance(o, Points2D)),
-                *(o for o in overlays if isinstance(o, Segments2D))]
+    in_order: list[Points2D | Segments2D] = [*(o for o in overlays if isinstance(o, Points2D)),
+                                             *(o for o in overlays if isinstance(o, Segments2D))]
     for overlay in in_order:  # segments (residuals) on top of points
         keep = _on_view(overlay, view)
         if isinstance(overlay, Points2D):
@@ -127,7 +127,7 @@ def overlay_view(image: Image, overlays: Iterable[Points2D | Segments2D] = (), *
             n_points += 1
             for i, (x, y) in zip(np.flatnonzero(keep), fixed(overlay.xy[keep]), strict=True):
                 cv2.circle(rgb, (int(x), int(y)), round(radius * one),
-                           _color8(overlay.colors, i, default),
+                           _color8(overlay.colors, int(i), default),
                            1, cv2.LINE_AA, shift)
         else:
             default = SEGMENT_COLORS[n_segments % len(SEGMENT_COLORS)]
@@ -135,7 +135,7 @@ def overlay_view(image: Image, overlays: Iterable[Points2D | Segments2D] = (), *
             index = np.flatnonzero(keep)
             for i, (x0, y0), (x1, y1) in zip(index, fixed(overlay.start[keep]), fixed(overlay.end[keep]),
                                              strict=True):
-                color = _color8(overlay.colors, i, default)
+                color = _color8(overlay.colors, int(i), default)
                 cv2.line(rgb, (int(x0), int(y0)), (int(x1), int(y1)), color, 1, cv2.LINE_AA, shift)
                 cv2.circle(rgb, (int(x0), int(y0)), one, color, -1, cv2.LINE_AA, shift)
     return rgb
@@ -192,7 +192,7 @@ def curve_image(curve: Curve, *, width: int = 480, height: int = 260) -> np.ndar
                 if not np.isfinite(y[s, i]):
                     continue
                 x0 = left + slot * i + 0.1 * slot + bar_w * s
-                color = WORST_BAR_COLOR if (s == 0 and i == worst) else BAR_COLOR
+                color: tuple[int, ...] = WORST_BAR_COLOR if (s == 0 and i == worst) else BAR_COLOR
                 if s > 0:
                     color = tuple(int(c * 0.6 + 255 * 0.4) for c in BAR_COLOR)
                 cv2.rectangle(img, (round(x0), py(max(y[s, i], y_min))),
@@ -464,6 +464,7 @@ class Segments3DRenderer(Renderer):
 
     def draw(self, canvas, name, value: Segments3D, state, order) -> Drawn:
         points = np.stack([value.start, value.end], axis=1).astype(np.float32)
+        colors: np.ndarray | tuple[int, int, int]
         if value.colors is not None:
             colors = np.repeat((np.clip(value.colors, 0, 1) * 255).astype(np.uint8)[:, None, :], 2, axis=1)
         else:
@@ -673,6 +674,8 @@ class StateDrawer:
         for position, name in enumerate(sorted(drawable, key=lambda n: ((order or {}).get(n, 1e9), n))):
             value = drawable[name]
             renderer = renderer_for(value)
+            if renderer is None:  # not drawable (_draws left it out already)
+                continue
             fingerprint = renderer.fingerprint(name, value, state, self.canvas)
             old = self.drawn.get(name)
             if old is not None and old.fingerprint == fingerprint:

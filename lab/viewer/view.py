@@ -178,7 +178,8 @@ class ClientView:
         if self.lesson_mode is not None and self.lesson_mode.lesson is not None:
             self.lesson_mode.new_session()
             return
-        module = query.get("module") or (self.catalog.names() or [None])[0]
+        names = self.catalog.names()
+        module = query.get("module") or (names[0] if names else None)
         if module is None:
             raise UnknownName("module", "this server offers no module")
         self.open_session(self.store.create(self.catalog.get(module), query.get("dataset") or None))
@@ -387,7 +388,9 @@ class ClientView:
         try:
             for name, controls in params.items():
                 row = self.rows.get(name)
-                for control in row.spec.controls if row is not None else ():
+                if row is None:
+                    continue
+                for control in row.spec.controls:
                     if control.name in controls:
                         with contextlib.suppress(Exception):  # a value the widget cannot show stays as it is
                             show_value(control, row.controls[control.name], controls[control.name])

@@ -87,25 +87,32 @@ def add_control_widget(gui: Any, control: Control, value: Any = None) -> Any:
     if kind == "text":
         return gui.add_text(label, _text_of(control, value), hint=hint)
     if kind in ("vector2", "vector3"):
-        n = len(control.item_kinds)
-        initial = tuple(float(v) for v in value) if value is not None else (0.0,) * n
-        lo = None if control.minimum is None else (float(control.minimum),) * n
-        hi = None if control.maximum is None else (float(control.maximum),) * n
-        step = 1.0 if all(k == "int" for k in control.item_kinds) else None
-        add = gui.add_vector2 if n == 2 else gui.add_vector3
-        return add(label, initial, min=lo, max=hi, step=step, hint=hint)
+        return _add_vector(gui, control, value, hint)
+    return _add_number(gui, control, value, hint, slider=kind == "slider")
+
+
+def _add_vector(gui: Any, control: Control, value: Any, hint: str | None) -> Any:
+    n = len(control.item_kinds)
+    initial = tuple(float(v) for v in value) if value is not None else (0.0,) * n
+    lows = None if control.minimum is None else (float(control.minimum),) * n
+    highs = None if control.maximum is None else (float(control.maximum),) * n
+    step = 1.0 if all(k == "int" for k in control.item_kinds) else None
+    add = gui.add_vector2 if n == 2 else gui.add_vector3
+    return add(control.name, initial, min=lows, max=highs, step=step, hint=hint)
+
+
+def _add_number(gui: Any, control: Control, value: Any, hint: str | None, *, slider: bool) -> Any:
     is_int = control.kind == "int"
-    cast = int if is_int else float
+    cast: type[int] | type[float] = int if is_int else float
     if value is None:  # a required number: start at its lower bound (or 0)
         value = control.minimum if control.minimum is not None else 0
-    value = cast(value)
-    if kind == "slider":
-        lo, hi = cast(control.minimum), cast(control.maximum)
-        step = 1 if is_int else nice_step(hi - lo, lo, value)
-        return gui.add_slider(label, min=lo, max=hi, step=step, initial_value=value, hint=hint)
+    number = cast(value)
     lo = None if control.minimum is None else cast(control.minimum)
     hi = None if control.maximum is None else cast(control.maximum)
-    return gui.add_number(label, value, min=lo, max=hi, step=1 if is_int else None, hint=hint)
+    if slider and lo is not None and hi is not None:
+        step = 1 if is_int else nice_step(hi - lo, lo, number)
+        return gui.add_slider(control.name, min=lo, max=hi, step=step, initial_value=number, hint=hint)
+    return gui.add_number(control.name, number, min=lo, max=hi, step=1 if is_int else None, hint=hint)
 
 
 def widget_value(control: Control, handle: Any) -> Any:

@@ -100,11 +100,11 @@ def test_scrubbing_points_and_resampling(view):
     assert clean[:, 0].min() > noisy[:, 0].min()  # beside, along +x
     part.show_frame(3)
     assert part.segments.shape == (16 * 3, 2, 3) and "step 3 of 8" in part.status_md.content
-    assert {"x_t", "x0", "paths"} <= set(part.nodes)
+    assert {"x_t", "x0", "paths"} <= set(part.nodes.names())
     box = part.bounds()
     assert box.shape == (2, 3) and np.all(box[0] <= box[1])
     part.show_frame(0)
-    assert "paths" not in part.nodes and "pure noise" in part.status_md.content
+    assert "paths" not in part.nodes.names() and "pure noise" in part.status_md.content
     # a bad frame is a clear error shown in the tab, not an exception out of a callback
     part.ctx.guarded(part.show_frame)(99)
     assert view.errors and "frame" in str(view.errors[-1])
@@ -129,7 +129,7 @@ def test_the_scrubber_survives_a_reset(view):
     assert part.clouds is not None
     view.reset("train_denoiser")
     view.refresh(force=True)
-    assert part.trace is None and part.clouds is None and not part.nodes
+    assert part.trace is None and part.clouds is None and not part.nodes.names()
     with pytest.raises(InvalidValue, match="no sampling run"):
         part.show_frame(0)
 

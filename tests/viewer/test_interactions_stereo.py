@@ -424,3 +424,16 @@ def test_image_values_are_left_to_the_generic_drawing(view):
     run_to(view, "filter_disparity")
     assert {"left", "right", "disparity_image"} <= set(view.drawer.drawn)
     assert isinstance(view.session.state["disparity_image"], Image)
+
+
+def test_the_baseline_button_restarts_the_rig_with_the_sliders_baseline(view):
+    """The button's own callback (it once passed an argument _apply does not take, so a click only showed a
+    TypeError)."""
+    _, _, baseline = parts(view)
+    first = view.session
+    baseline.slider.value = 0.45
+    baseline.apply_button.value = True  # a button's value setter runs its click callbacks
+    view.wait()
+    assert not view.errors and view.session is not first
+    assert view.session.options["baseline"] == pytest.approx(0.45)
+    assert view.session.step_status()["reconstruct_points"] == "done"

@@ -21,7 +21,8 @@ from toy_pipeline import TOY
 
 
 def make_view(server, store, modules=None) -> ClientView:
-    view = ClientView(server, store, ModuleCatalog(modules or {"toy": TOY}), is_client=False, background=False)
+    view = ClientView(server, store, ModuleCatalog(modules or {"toy": TOY}), is_client=False,
+                      background=False)
     view.start({})
     return view
 
@@ -142,7 +143,8 @@ def quilt(sample: Image, *, block: Annotated[int, Range(1, 8)] = 2) -> Annotated
     return Image(np.tile(sample.pixels[:block, :block], (2, 2)))
 
 
-BRANCHES = Pipeline.build(name="branches", title="Branches", summary="", steps=[pick_window, match_window, quilt],
+BRANCHES = Pipeline.build(name="branches", title="Branches", summary="",
+                          steps=[pick_window, match_window, quilt],
                           datasets=[sample_images])
 
 

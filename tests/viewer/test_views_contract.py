@@ -44,7 +44,9 @@ def _dotted(path: Path) -> str:
 
 
 def _is_ctx(node: ast.expr) -> bool:
-    return (isinstance(node, ast.Name) and node.id == "ctx") or (isinstance(node, ast.Attribute) and node.attr == "ctx")
+    if isinstance(node, ast.Name):
+        return node.id == "ctx"
+    return isinstance(node, ast.Attribute) and node.attr == "ctx"
 
 
 def accessor_reads(path: Path) -> list[tuple[int, tuple[str, ...]]]:
@@ -72,10 +74,13 @@ def accessor_reads(path: Path) -> list[tuple[int, tuple[str, ...]]]:
 def test_every_name_an_interaction_reads_is_one_of_its_pipelines_views(module):
     assert module in MODULES, f"interactions of {module!r}, which is no registered module"
     pipeline = get_pipeline(module)
-    reads = [(path.name, line, names) for path in interaction_modules()[module] for line, names in accessor_reads(path)]
+    reads = [(path.name, line, names) for path in interaction_modules()[module] for line,
+             names in accessor_reads(path)]
     assert reads, f"the {module} interactions read no session value through ctx.value / ctx.values"
-    missing = {(name, f"{file}:{line}") for file, line, names in reads for name in names if name not in pipeline.views}
-    assert not missing, (f"the {module} interactions read names that pipeline {module!r} does not list in its "
+    missing = {(name, f"{file}:{line}") for file, line,
+               names in reads for name in names if name not in pipeline.views}
+    assert not missing, (f"the {module} interactions read names that pipeline {module!r} does not list in "
+                         "its "
                          f"views {sorted(pipeline.views)}: {sorted(missing)}")
 
 

@@ -25,7 +25,7 @@ import numpy as np
 
 from lab.core.errors import InvalidValue
 from lab.modules.diffusion import DIGIT_SHAPE, SamplingTrace, digit_grid
-from lab.viewer.interactions import Interaction, InteractionContext
+from lab.viewer.interactions import Interaction, InteractionContext, NamedHandles
 
 #: Colours (RGB, 0-255).
 NOISY_COLOR = (90, 140, 255)
@@ -126,7 +126,7 @@ class SamplerScrubber(Interaction):
         self.clouds: tuple[np.ndarray, np.ndarray] | None = None
         self.segments = np.zeros((0, 2, 3))
         self.grids: tuple[np.ndarray, np.ndarray] | None = None
-        self.nodes: dict[str, Any] = {}
+        self.nodes = NamedHandles()
         self.status_md = self.track(gui.add_markdown("Run **sample** to scrub its steps."))
         self.slider = self.track(gui.add_slider("frame", 0, 1, 1, 0, hint="scrub the sampler's steps"))
         self.sampler_choice = self.track(gui.add_dropdown("sampler", ("ddim", "ddpm", "euler", "heun", "sde"),
@@ -207,33 +207,22 @@ class SamplerScrubber(Interaction):
         both = np.concatenate(self.clouds)
         return np.stack([both.min(axis=0), both.max(axis=0)])
 
-    def _put(self, key: str, make) -> None:
-        old = self.nodes.pop(key, None)
-        if old is not None:
-            old.remove()
-            if old in self.handles:
-                self.handles.remove(old)
-        self.nodes[key] = self.track(make())
-
     def _draw_points(self) -> None:
-        scene = self.ctx.scene
+        scene, node = self.ctx.scene, self.ctx.node
         size = 0.01 * max(self.ctx.extent(), 1e-3)
-        noisy, clean = self.clouds
-        self._put("x_t", lambda: scene.add_point_cloud(self.ctx.node("x_t"), noisy.astype(np.float32),
-                                                       NOISY_COLOR,
-                                                      point_size=size))
-        self._put("x0", lambda: scene.add_point_cloud(self.ctx.node("x0"), clean.astype(np.float32),
-                                                      CLEAN_COLOR,
-                                                     point_size=size))
+        assert self.clouds is not None
+        noisy, clean = (cloud.astype(np.float32) for cloud in self.clouds)
+        self.nodes.put("x_t", lambda: scene.add_point_cloud(node("x_t"), noisy, NOISY_COLOR, point_size=size))
+        self.nodes.put("x0", lambda: scene.add_point_cloud(node("x0"), clean, CLEAN_COLOR, point_size=size))
         if len(self.segments):
-            self._put("paths", lambda: scene.add_line_segments(self.ctx.node("trajectories"),
-                                                              self.segments.astype(np.float32),
-                                                              TRAJECTORY_COLOR,
-                                                              thickness=0.2 * size))
-        elif "paths" in self.nodes:
-            self._remove("paths")
+            segments = self.segments.astype(np.float32)
+            self.nodes.put("paths", lambda: scene.add_line_segments(node("trajectories"), segments,
+                                                                    TRAJECTORY_COLOR, thickness=0.2 * size))
+        else:
+            self.nodes.drop_exact("paths")
 
     def _draw_digits(self) -> None:
+        assert self.grids is not None
         noisy, clean = (_rgb8(g) for g in self.grids)
         if self.image_handles is None:
             with self.ctx.images:
@@ -243,16 +232,12 @@ class SamplerScrubber(Interaction):
             self.image_handles[0].image = noisy
             self.image_handles[1].image = clean
 
-    def _remove(self, key: str) -> None:
-        handle = self.nodes.pop(key, None)
-        if handle is not None:
-            handle.remove()
-            if handle in self.handles:
-                self.handles.remove(handle)
+    def close(self) -> None:
+        self.nodes.clear()
+        super().close()
 
     def _clear(self) -> None:
-        for key in list(self.nodes):
-            self._remove(key)
+        self.nodes.clear()
         self.clouds = None
         self.grids = None
         self.segments = np.zeros((0, 2, 3))

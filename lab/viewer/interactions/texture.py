@@ -250,7 +250,7 @@ class GrowthExplorer(Interaction):
     # --- public: what a click or a test does ----------------------------------------------------------
     def show_growth(self, upto: int) -> np.ndarray:
         """Show the texture and the fill order after ``upto`` pixels; returns the frame."""
-        texture, trace = self._require()
+        texture, trace, _ = self._require()
         upto = int(np.clip(upto, 0, trace.fill_order.size))
         frame = growth_frame(texture, trace, upto)
         self.order_panel.image = _upscaled(fill_order_image(trace, upto))[0]
@@ -259,8 +259,8 @@ class GrowthExplorer(Interaction):
 
     def pick_pixel(self, row: int, col: int) -> PixelMatches:
         """Explain output pixel ``(row, col)``: draw its window, its candidates and the copied window."""
-        texture, trace = self._require()
-        matches = efros_leung_pixel_matches(self.sample, texture, trace, row, col)
+        texture, trace, sample = self._require()
+        matches = efros_leung_pixel_matches(sample, texture, trace, row, col)
         self.matches, self.pixel = matches, (row, col)
         self.pixel_input.value = (float(row), float(col))
         self._draw_matches()
@@ -312,10 +312,17 @@ class GrowthExplorer(Interaction):
         super().close()
 
     # --- drawing ---------------------------------------------------------------------------------------
-    def _require(self) -> tuple[Image, EfrosLeungTrace]:
-        if self.texture is None or self.trace is None:
+    def _require(self) -> tuple[Image, EfrosLeungTrace, Image]:
+        """The texture, its trace and the sample shown; :class:`MissingInput` before there are any."""
+        if self.texture is None or self.trace is None or self.sample is None:
             raise MissingInput("efros_leung", "run step 'synthesize_efros_leung' first")
-        return self.texture, self.trace
+        return self.texture, self.trace, self.sample
+
+    def _planes(self) -> tuple[Plane, Plane]:
+        """Where the texture and the sample are drawn (placed when a texture is shown)."""
+        if self.output_plane is None or self.sample_plane is None:
+            raise MissingInput("efros_leung", "run step 'synthesize_efros_leung' first")
+        return self.output_plane, self.sample_plane
 
     def _forget(self) -> None:
         self.texture = self.trace = self.sample = self.matches = self.pixel = None
@@ -327,7 +334,7 @@ class GrowthExplorer(Interaction):
         self.info.content = "Run **synthesize_efros_leung** to watch the texture grow."
 
     def _place_planes(self) -> None:
-        texture, sample = self.texture, self.sample
+        texture, _, sample = self._require()
         scale = PLANE_SIDE / max(texture.width, texture.height)
         self.output_plane = Plane((0.0, 0.0, 0.0), texture.width, texture.height, scale)
         gap = 0.15 * PLANE_SIDE
@@ -347,33 +354,36 @@ class GrowthExplorer(Interaction):
                 lambda: self.click_output(event.ray_origin, event.ray_direction))())
 
     def _output_plane(self, rgb: np.ndarray) -> None:
-        self._image_node("texture", self.output_plane, rgb, clickable=True)
+        self._image_node("texture", self._planes()[0], rgb, clickable=True)
 
     def _sample_plane(self) -> None:
-        self._image_node("sample", self.sample_plane, to_rgb8(self.sample.pixels), clickable=False)
+        self._image_node("sample", self._planes()[1], to_rgb8(self._require()[2].pixels), clickable=False)
 
     def _draw_matches(self) -> None:
-        matches, trace = self.matches, self.trace
-        row, col = self.pixel
+        _, trace, sample = self._require()
+        output_plane, sample_plane = self._planes()
+        matches, pixel = self.matches, self.pixel
+        if matches is None or pixel is None:
+            return
+        row, col = pixel
         half = trace.window // 2
         scene = self.ctx.scene
-        outline = _rectangle(self.output_plane, row - half, col - half, trace.window, trace.window)
+        outline = _rectangle(output_plane, row - half, col - half, trace.window, trace.window)
         self.nodes.put("window", lambda: scene.add_line_segments(
             self.ctx.node("efros_leung", "window"), outline, WINDOW_COLOR, thickness=3.0,
             thickness_units="screen"))
-        centres = np.array([self.sample_plane.point(top + half, left + half) for top,
-                            left in matches.candidates])
+        centres = np.array([sample_plane.point(top + half, left + half) for top, left in matches.candidates])
         centres[:, 2] += 0.01
         self.nodes.put("candidates", lambda: scene.add_point_cloud(
             self.ctx.node("efros_leung", "candidates"), centres.astype(np.float32), CANDIDATE_COLOR,
-            point_size=0.6 * self.sample_plane.scale, point_shape="circle"))
+            point_size=0.6 * sample_plane.scale, point_shape="circle"))
         top, left = (int(v) for v in matches.chosen)
-        box = _rectangle(self.sample_plane, top, left, trace.window, trace.window)
+        box = _rectangle(sample_plane, top, left, trace.window, trace.window)
         self.nodes.put("chosen", lambda: scene.add_line_segments(
             self.ctx.node("efros_leung", "chosen"), box, CHOSEN_COLOR, thickness=3.0,
             thickness_units="screen"))
         self.window_image.image = window_panel(matches)
-        self.match_image.image = match_panel(self.sample, matches, trace.window)
+        self.match_image.image = match_panel(sample, matches, trace.window)
         self.window_image.visible = self.match_image.visible = True
         seeded = matches.order < trace.seed_pixels
         seed = " (a seed pixel: copied with the seed patch, not matched)" if seeded else ""
@@ -414,7 +424,8 @@ class QuiltExplorer(Interaction):
     def pick_block(self, index: int) -> np.ndarray:
         """Show block ``index``: its error surface with the cut (returned, uint8) and its outline on the
         quilt."""
-        if self.layout is None:
+        plane = self.plane
+        if self.layout is None or plane is None:
             raise MissingInput("quilting", "run step 'quilt' first")
         panel = overlap_panel(self.layout, index)
         self.block = index
@@ -434,7 +445,7 @@ class QuiltExplorer(Interaction):
                              f"{errors[errors > 0].mean() if (errors > 0).any() else 0.0:.4g}; along the cut "
                              f"{errors[cut].sum():.4g} over {int(cut.sum())} pixels (red).")
         b = self.layout.block
-        outline = _rectangle(self.plane, y, x, b, b)
+        outline = _rectangle(plane, y, x, b, b)
         self.nodes.put("block", lambda: self.ctx.scene.add_line_segments(
             self.ctx.node("quilting", "block"), outline, CUT_COLOR, thickness=3.0, thickness_units="screen"))
         return panel
@@ -465,13 +476,13 @@ class QuiltExplorer(Interaction):
             return
         self.layout, self.quilting = layout, quilting
         scale = PLANE_SIDE / max(quilting.width, quilting.height)
-        self.plane = Plane((0.0, -1.2 * PLANE_SIDE, 0.0), quilting.width, quilting.height, scale)
+        self.plane = plane = Plane((0.0, -1.2 * PLANE_SIDE, 0.0), quilting.width, quilting.height, scale)
         handle = self.nodes.put("quilt", lambda: self.ctx.scene.add_image(
             self.ctx.node("quilting", "image"), to_rgb8(quilting.pixels), quilting.width * scale,
-            quilting.height * scale, format="png", position=self.plane.position, cast_shadow=False,
+            quilting.height * scale, format="png", position=plane.position, cast_shadow=False,
             receive_shadow=False))
         handle.on_click(lambda event: self.ctx.guarded(
-            lambda: self.pick_pixel(*plane_pixel(self.plane, event.ray_origin, event.ray_direction)))())
+            lambda: self.pick_pixel(*plane_pixel(plane, event.ray_origin, event.ray_direction)))())
         self.syncing = True
         try:
             self.slider.max = max(1, len(layout.positions) - 1)

@@ -214,41 +214,42 @@ class PoseCandidates(Interaction):
                 "red behind one.\n\n" + "\n".join(rows) + note)
 
     def _draw(self, a: CandidateAnalysis) -> None:
-        scene, ctx = self.ctx.scene, self.ctx
+        for i in range(len(a.candidates)):
+            self._draw_candidate(a, i)
+
+    def _draw_candidate(self, a: CandidateAnalysis, i: int) -> None:
+        """Candidate ``i``'s rig (green when it passes), its points (blue in front, red behind) and label."""
+        scene, node = self.ctx.scene, self.ctx.node
+        candidate, offset = a.candidates[i], a.offsets[i]
         spacing = 1.6 * a.far * a.scale
         size = 0.06 * spacing
         radius = 1.15 * a.far  # points farther than this from camera 1 are not drawn (candidate units)
-        for i, (candidate, offset) in enumerate(zip(a.candidates, a.offsets, strict=True)):
-            color = CHOSEN_COLOR if i == a.chosen else OTHER_COLOR
-            centres = a.scale * np.stack([np.zeros(3), camera_centre(candidate[:, :3], candidate[:, 3])])
-            axes = [np.eye(3), candidate[:, :3].T]  # camera to world
-            segments = []
-            for centre, rotation in zip(centres, axes, strict=True):
-                corners = centre + (np.array([[-1, -0.75, 1.5], [1, -0.75, 1.5], [1, 0.75, 1.5],
-                                              [-1, 0.75, 1.5]])
-                                    * size) @ rotation.T
-                segments.append(frustum_segments(centre, corners))
-            segments.append(np.array([[centres[0], centres[1]]], dtype=np.float32))
-            rig = np.concatenate(segments) + offset.astype(np.float32)
-            base = f"candidates/{i}"
-            self.nodes.put(f"{base}/rig", lambda rig=rig, i=i, color=color: scene.add_line_segments(
-                ctx.node("candidates", str(i), "rig"), points=rig, colors=color,
-                thickness=4.0 if i == a.chosen else 2.0, thickness_units="screen"))
-            X, front = a.points[i], a.in_front[i]
-            shown = np.all(np.isfinite(X), axis=1) & (np.linalg.norm(X, axis=1) <= radius)
-            if shown.any():
-                colors = np.where(front[shown, None], np.array(IN_FRONT_COLOR),
-                                  np.array(BEHIND_COLOR)).astype(np.uint8)
-                points = (a.scale * X[shown] + offset).astype(np.float32)
-                self.nodes.put(f"{base}/points", lambda points=points, colors=colors,
-                               i=i: scene.add_point_cloud(
-                    ctx.node("candidates", str(i), "points"), points=points, colors=colors,
-                    point_size=0.01 * spacing, point_shape="circle"))
-            text = (f"#{i + 1} {CANDIDATE_NAMES[i] if i < 4 else ''}: {int(a.counts[i])}/{a.total} in front"
-                    + (" ✓ passes" if i == a.chosen else ""))
-            above = tuple(offset + np.array([0.0, -0.3 * spacing, 0.0]))  # up is -y
-            self.nodes.put(f"{base}/label", lambda text=text, above=above, i=i: scene.add_label(
-                ctx.node("candidates", str(i), "label"), text, position=above))
+        color = CHOSEN_COLOR if i == a.chosen else OTHER_COLOR
+        centres = a.scale * np.stack([np.zeros(3), camera_centre(candidate[:, :3], candidate[:, 3])])
+        axes = [np.eye(3), candidate[:, :3].T]  # camera to world
+        outline = np.array([[-1, -0.75, 1.5], [1, -0.75, 1.5], [1, 0.75, 1.5], [-1, 0.75, 1.5]])
+        segments = [frustum_segments(centre, centre + (outline * size) @ rotation.T)
+                    for centre, rotation in zip(centres, axes, strict=True)]
+        segments.append(np.array([[centres[0], centres[1]]], dtype=np.float32))
+        rig = np.concatenate(segments) + offset.astype(np.float32)
+        base = f"candidates/{i}"
+        self.nodes.put(f"{base}/rig", lambda: scene.add_line_segments(
+            node("candidates", str(i), "rig"), points=rig, colors=color,
+            thickness=4.0 if i == a.chosen else 2.0, thickness_units="screen"))
+        X, front = a.points[i], a.in_front[i]
+        shown = np.all(np.isfinite(X), axis=1) & (np.linalg.norm(X, axis=1) <= radius)
+        if shown.any():
+            colors = np.where(front[shown, None], np.array(IN_FRONT_COLOR),
+                              np.array(BEHIND_COLOR)).astype(np.uint8)
+            points = (a.scale * X[shown] + offset).astype(np.float32)
+            self.nodes.put(f"{base}/points", lambda: scene.add_point_cloud(
+                node("candidates", str(i), "points"), points=points, colors=colors, point_size=0.01 * spacing,
+                point_shape="circle"))
+        text = (f"#{i + 1} {CANDIDATE_NAMES[i] if i < 4 else ''}: {int(a.counts[i])}/{a.total} in front"
+                + (" ✓ passes" if i == a.chosen else ""))
+        above = tuple(offset + np.array([0.0, -0.3 * spacing, 0.0]))  # up is -y
+        self.nodes.put(f"{base}/label", lambda: scene.add_label(node("candidates", str(i), "label"), text,
+                                                                position=above))
 
     def scene_nodes(self) -> list[str]:
         with self.lock:

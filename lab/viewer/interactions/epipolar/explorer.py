@@ -106,16 +106,18 @@ class EpipolarExplorer(Interaction):
         """``(2, 3)`` min and max corner of what the explorer draws (both cameras, the ray, the point), or
         None: for framing the tab's camera before the session has 3D values of its own."""
         with self.lock:
-            if self.geometry is None or self.geometry.camera(1) is None:
+            geometry = self.geometry
+            camera = None if geometry is None else geometry.camera(1)
+            if geometry is None or camera is None:
                 return None
-            points = [np.zeros((1, 3)), lift_pixels(*self.geometry.camera(1), np.array(
-                [[0.0, 0.0], self.geometry.sizes[0]], dtype=np.float64), self.typical)]
-            if self.geometry.has_pose:
-                points.append(self.geometry.centres())
+            corners = np.array([[0.0, 0.0], geometry.sizes[0]], dtype=np.float64)
+            points = [np.zeros((1, 3)), lift_pixels(*camera, corners, self.typical)]
+            if geometry.has_pose:
+                points.append(geometry.centres())
             if self.last_point is not None:
                 points.append(self.last_point.point.reshape(1, 3))
-            points = np.concatenate(points)
-            return np.stack([points.min(axis=0), points.max(axis=0)])
+            every = np.concatenate(points)
+            return np.stack([every.min(axis=0), every.max(axis=0)])
 
     # --- viser wiring -------------------------------------------------------------------------------
     def _pick_from_inputs(self) -> None:
@@ -124,11 +126,7 @@ class EpipolarExplorer(Interaction):
 
     def _click(self, image: int, ray_origin: Any, ray_direction: Any) -> PixelPick:
         with self.lock:
-            geometry = self._require_geometry()
-            camera = geometry.camera(image)
-            if camera is None:
-                raise MissingInput("K1" if image == 1 else "pose",
-                                   f"camera {image} is not placed in the scene")
+            camera = self._require_geometry().require_camera(image)
             pixel = click_to_pixel(ray_origin, ray_direction, *camera, self.depth)
             return self._pick(pixel, image)
 
@@ -182,17 +180,17 @@ class EpipolarExplorer(Interaction):
             if key == self._key:
                 return
             self._key = key
-            self.geometry = two_view_geometry(state, truth)
-            self.images = state.get("images") if self.geometry is not None else None
+            self.geometry = geometry = two_view_geometry(state, truth)
+            self.images = state.get("images") if geometry is not None else None
             self.nodes.clear()
             self._handle = None
-            if self.geometry is None:
+            if geometry is None:
                 self.last_pick = self.last_point = None
                 self.source_md.content = "This session has no pair of images."
                 return
-            self.typical, self.far = scene_depths(self.geometry, observed_pairs(state, truth))
-            has_pose = self.geometry.has_pose
-            baseline = float(np.linalg.norm(self.geometry.t)) if has_pose else self.typical / 5.0
+            self.typical, self.far = scene_depths(geometry, observed_pairs(state, truth))
+            pose = geometry.pose
+            baseline = float(np.linalg.norm(pose.t)) if pose is not None else self.typical / 5.0
             self.depth = max(min(0.35 * baseline, 0.25 * self.typical), 1e-3 * self.typical)
             self.source_md.content = self._sources()
             self._draw_rig()
@@ -206,30 +204,30 @@ class EpipolarExplorer(Interaction):
         old, self.last_pick = self.last_pick, None
         self.pick_md.content = ""
         if old is not None:
-            self.last_pick = pick(self.geometry, old.pixel, image=old.image, far=self.far)
+            self.last_pick = pick(self._require_geometry(), old.pixel, image=old.image, far=self.far)
             self._draw_pick()
 
     def _redo_point(self) -> None:
         old, self.last_point = self.last_point, None
         self.point_md.content = ""
-        if not self.geometry.has_pose:
+        geometry = self._require_geometry()
+        pose = geometry.pose
+        if pose is None:
             return
+        (width, height), _ = geometry.sizes
         start = old.point if old is not None else lift_pixels(
-            self.geometry.K1, np.eye(3), np.zeros(3),
-            np.array([[(self.geometry.sizes[0][0] - 1) / 2,
-                       (self.geometry.sizes[0][1] - 1) / 2]]), self.typical)[0]
-        self.last_point = move(self.geometry, start)
+            pose.K1, np.eye(3), np.zeros(3), np.array([[(width - 1) / 2, (height - 1) / 2]]), self.typical)[0]
+        self.last_point = move(geometry, start)
         self._sync_inputs(point=self.last_point.point)
         self._add_handle(self.last_point.point)
         self._draw_point()
 
     def _sources(self) -> str:
-        g = self.geometry
+        g = self._require_geometry()
+        units = " (units of the truth)." if g.pose_source == "the ground truth" else " (baseline = 1)."
         lines = [f"**F** from {g.f_source}." if g.F is not None else
                  "**F**: none yet (run the 8-point or RANSAC step; this dataset has no ground truth).",
-                 f"**Pose** from {g.pose_source}" + (" (units of the truth)."
-                                                      if g.pose_source == "the ground truth"
-                                                      else " (baseline = 1).") if g.R is not None else
+                 f"**Pose** from {g.pose_source}{units}" if g.R is not None else
                  "**Pose**: none yet (run recover_pose): no camera 2 in 3D.",
                  "Click an image plane in the scene (camera 1 or 2) or type a pixel; drag the gizmo to move "
                  "the 3D point."]
@@ -240,28 +238,30 @@ class EpipolarExplorer(Interaction):
     # --- scene drawing -------------------------------------------------------------------------------------
     def _draw_rig(self) -> None:
         """Both cameras: a frustum and the image as a clickable plane at ``self.depth``."""
-        scene, ctx = self.ctx.scene, self.ctx
+        geometry = self._require_geometry()
         for image in (1, 2):
-            camera = self.geometry.camera(image)
+            camera = geometry.camera(image)
             if camera is None:
                 continue
-            width, height = self.geometry.sizes[image - 1]
+            width, height = geometry.sizes[image - 1]
             placement = image_placement(*camera, width, height, self.depth)
             centre = camera_centre(camera[1], camera[2])
-            segments = frustum_segments(centre, placement.corners)
-            self.nodes.put(f"rig/camera{image}/frustum", lambda image=image,
-                           segments=segments: scene.add_line_segments(
-                ctx.node("rig", f"camera{image}", "frustum"), points=segments,
-                colors=CAMERA_COLORS[image - 1],
-                thickness=2.0, thickness_units="screen"))
-            self.nodes.put(f"rig/camera{image}/label", lambda image=image, centre=centre: scene.add_label(
-                ctx.node("rig", f"camera{image}", "label"), f"camera {image}", position=tuple(centre)))
+            self._draw_camera(image, centre, frustum_segments(centre, placement.corners))
+
+    def _draw_camera(self, image: int, centre: np.ndarray, segments: np.ndarray) -> None:
+        scene, node = self.ctx.scene, self.ctx.node
+        self.nodes.put(f"rig/camera{image}/frustum", lambda: scene.add_line_segments(
+            node("rig", f"camera{image}", "frustum"), points=segments, colors=CAMERA_COLORS[image - 1],
+            thickness=2.0, thickness_units="screen"))
+        self.nodes.put(f"rig/camera{image}/label", lambda: scene.add_label(
+            node("rig", f"camera{image}", "label"), f"camera {image}", position=tuple(centre)))
 
     def _image_plane(self, image: int, texture: np.ndarray) -> None:
-        camera = self.geometry.camera(image)
+        geometry = self._require_geometry()
+        camera = geometry.camera(image)
         if camera is None:
             return
-        width, height = self.geometry.sizes[image - 1]
+        width, height = geometry.sizes[image - 1]
         placement = image_placement(*camera, width, height, self.depth)
         name = f"rig/camera{image}/image"
         handle = self.nodes.handles.get(name)
@@ -269,41 +269,42 @@ class EpipolarExplorer(Interaction):
             handle.image = texture
             return
         handle = self.nodes.put(name, lambda: self.ctx.scene.add_image(
-            self.ctx.node("rig", f"camera{image}",
-                          "image"), texture, placement.render_width, placement.render_height,
-            format="jpeg", jpeg_quality=85, wxyz=wxyz_from_matrix(placement.rotation),
-            position=placement.position,
-            cast_shadow=False, receive_shadow=False))
+            self.ctx.node("rig", f"camera{image}", "image"), texture, placement.render_width,
+            placement.render_height, format="jpeg", jpeg_quality=85,
+            wxyz=wxyz_from_matrix(placement.rotation), position=placement.position, cast_shadow=False,
+            receive_shadow=False))
         handle.on_click(lambda event, image=image: self.ctx.guarded(
             lambda: self._click(image, event.ray_origin, event.ray_direction))())
 
     def _draw_textures(self, *, panels: bool = True) -> None:
         """Both images with the current overlays: on the image planes in 3D and (``panels``) in the Images
         panel."""
-        if self.geometry is None or self.images is None:
+        images = self.images
+        if self.geometry is None or images is None:
             return
         overlays = explorer_overlays(self.geometry, self.last_pick, self.last_point)
         for index in (0, 1):
-            image = self.images[index]
-            self.textures[index] = draw_overlays(image, overlays[index], base=self._base(index, "plane"))
-            self._image_plane(index + 1, self.textures[index])
+            image = images[index]
+            texture = draw_overlays(image, overlays[index], base=self._base(images, index, "plane"))
+            self.textures[index] = texture
+            self._image_plane(index + 1, texture)
             if not panels:
                 continue
-            panel = draw_overlays(image, overlays[index], base=self._base(index, "panel"))
+            panel = draw_overlays(image, overlays[index], base=self._base(images, index, "panel"))
             self.panel_images[index].image = panel
             self.panel_images[index].label = f"image {index + 1}: " + ", ".join(
                 ["yellow: picked pixel / its epipolar line"] * (self.last_pick is not None)
                 + ["magenta: the 3D point's projection and epipolar line"] * (self.last_point is not None)
                 + ["white: epipole"])
 
-    def _base(self, index: int, kind: Literal["plane", "panel"]) -> np.ndarray:
+    def _base(self, images: ImageSet, index: int, kind: Literal["plane", "panel"]) -> np.ndarray:
         """Image ``index`` resized for a scene plane or the panel, without overlays (made once per image
         set)."""
-        key = (id(self.images), index, kind)
+        key = (id(images), index, kind)
         if key not in self._bases:
             sides = {"plane": (FRUSTUM_MAX_SIDE, None), "panel": (PANEL_MAX_SIDE, PANEL_MIN_SIDE)}[kind]
-            self._bases = {k: v for k, v in self._bases.items() if k[0] == id(self.images)}
-            self._bases[key] = overlay_view(self.images[index], [], max_side=sides[0], min_side=sides[1])
+            self._bases = {k: v for k, v in self._bases.items() if k[0] == id(images)}
+            self._bases[key] = overlay_view(images[index], [], max_side=sides[0], min_side=sides[1])
         return self._bases[key]
 
     def _segments(self, name: str, points: np.ndarray, color: tuple[int, int, int]) -> None:
@@ -314,13 +315,13 @@ class EpipolarExplorer(Interaction):
     def _mesh(self, name: str, vertices: np.ndarray, faces: np.ndarray, color: tuple[int, int, int]) -> None:
         self.nodes.put(name, lambda: self.ctx.scene.add_mesh_simple(
             self.ctx.node(*name.split("/")), np.asarray(vertices, dtype=np.float32),
-            np.asarray(faces, dtype=np.uint32),
-            color=color, opacity=0.35, side="double", cast_shadow=False, receive_shadow=False))
+            np.asarray(faces, dtype=np.uint32), color=color, opacity=0.35, side="double", cast_shadow=False,
+            receive_shadow=False))
 
     def _lifted(self, image: int, segment: np.ndarray | None) -> np.ndarray | None:
         """A 2D segment of image ``image`` on its plane in 3D, ``(1, 2, 3)`` (just in front of the
         texture)."""
-        camera = self.geometry.camera(image)
+        camera = self._require_geometry().camera(image)
         if camera is None or segment is None:
             return None
         return lift_pixels(*camera, segment, 0.995 * self.depth).reshape(1, 2, 3)
@@ -333,7 +334,7 @@ class EpipolarExplorer(Interaction):
         marker = None
         if result.ray is not None:
             self._segments("pick/ray", result.ray, PICK_COLOR)
-            camera = self.geometry.camera(result.image)
+            camera = self._require_geometry().require_camera(result.image)
             marker = lift_pixels(*camera, result.pixel.reshape(1, 2), self.depth)[0]
             self.nodes.put("pick/pixel", lambda: self.ctx.scene.add_icosphere(
                 self.ctx.node("pick", "pixel"), radius=0.02 * self.depth, color=PICK_COLOR,
@@ -374,7 +375,7 @@ class EpipolarExplorer(Interaction):
         result = self.last_point
         if result is None:
             return
-        c1, c2 = self.geometry.centres()
+        c1, c2 = self._require_geometry().centres()
         X = result.point
         self._segments("point/rays", np.array([[c1, X], [c2, X]]), POINT_COLOR)
         self._mesh("point/plane", result.plane, np.array([[0, 1, 2], [0, 2, 3]]), POINT_COLOR)

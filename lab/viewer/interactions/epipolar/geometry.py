@@ -14,7 +14,7 @@ from __future__ import annotations
 
 from collections.abc import Mapping
 from dataclasses import dataclass
-from typing import Any, Literal
+from typing import Any, NamedTuple
 
 import numpy as np
 
@@ -50,6 +50,15 @@ def check_pixel(pixel: Any, width: int, height: int, image: int) -> np.ndarray:
 # ----------------------------------------------------------------------------------------------------
 # Which geometry is shown: the session's, else the ground truth
 # ----------------------------------------------------------------------------------------------------
+class Pose(NamedTuple):
+    """Both cameras' intrinsics and camera 2's pose ``X_2 = R X_1 + t``, all known."""
+
+    K1: np.ndarray
+    K2: np.ndarray
+    R: np.ndarray
+    t: np.ndarray
+
+
 @dataclass(frozen=True)
 class TwoViewGeometry:
     """The two-view geometry the interactions draw, and where each part comes from.
@@ -69,20 +78,42 @@ class TwoViewGeometry:
     pose_source: str
 
     @property
+    def pose(self) -> Pose | None:
+        """Both K and the pose when all are known, else None."""
+        if self.K1 is None or self.K2 is None or self.R is None or self.t is None:
+            return None
+        return Pose(self.K1, self.K2, self.R, self.t)
+
+    @property
     def has_pose(self) -> bool:
-        return self.R is not None and self.K1 is not None and self.K2 is not None
+        return self.pose is not None
+
+    def require_pose(self) -> Pose:
+        """:attr:`pose`; :class:`MissingInput` (what to run) when it is not known."""
+        pose = self.pose
+        if pose is None:
+            raise MissingInput("pose", "no relative pose yet: run recover_pose (this dataset has no ground "
+                                       "truth pose to show instead)")
+        return pose
 
     def camera(self, image: int) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
         """``(K, R, t)`` of camera ``image`` (1: the world frame; 2: at the pose), None when unknown."""
         if image == 1:
             return None if self.K1 is None else (self.K1, np.eye(3), np.zeros(3))
-        if not self.has_pose:
-            return None
-        return self.K2, self.R, self.t
+        pose = self.pose
+        return None if pose is None else (pose.K2, pose.R, pose.t)
+
+    def require_camera(self, image: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """:meth:`camera`; :class:`MissingInput` when camera ``image`` is not placed."""
+        camera = self.camera(image)
+        if camera is None:
+            raise MissingInput("K1" if image == 1 else "pose", f"camera {image} is not placed in the scene")
+        return camera
 
     def centres(self) -> np.ndarray:
         """Camera centres ``(2, 3)``: the origin and ``-R^T t``."""
-        return np.stack([np.zeros(3), camera_centre(self.R, self.t)])
+        pose = self.require_pose()
+        return np.stack([np.zeros(3), camera_centre(pose.R, pose.t)])
 
 
 def matrix_or_none(value: Any) -> np.ndarray | None:
@@ -124,7 +155,7 @@ def two_view_geometry(state: Mapping[str, Any], truth: Mapping[str, Any]) -> Two
     f_source = "the session (the last F written: RANSAC's, else the 8-point's)" if F is not None else ""
     if F is None and matrix_or_none(truth.get("F")) is not None:
         F, f_source = np.asarray(truth["F"], dtype=np.float64), "the ground truth"
-    if F is None and R is not None and K1 is not None and K2 is not None:
+    if F is None and R is not None and t is not None and K1 is not None and K2 is not None:
         F, f_source = fundamental_from_pose(K1, K2, R, t), f"the pose from {pose_source}"
     return TwoViewGeometry(sizes, K1, K2, F, R, t, f_source, pose_source)
 
@@ -154,11 +185,12 @@ def scene_depths(geometry: TwoViewGeometry, pairs: tuple[np.ndarray, np.ndarray]
     """
     baseline = float(np.linalg.norm(geometry.t)) if geometry.t is not None else 1.0
     baseline = baseline if baseline > 0 else 1.0
-    if geometry.has_pose and pairs is not None and len(pairs[0]):
+    pose = geometry.pose
+    if pose is not None and pairs is not None and len(pairs[0]):
         step = max(1, len(pairs[0]) // 500)
         x1, x2 = pairs[0][::step], pairs[1][::step]
-        P = np.stack([projection_matrix(geometry.K1, np.eye(3), np.zeros(3)),
-                      projection_matrix(geometry.K2, geometry.R, geometry.t)])
+        P = np.stack([projection_matrix(pose.K1, np.eye(3), np.zeros(3)),
+                      projection_matrix(pose.K2, pose.R, pose.t)])
         X = triangulate_dlt(P, np.stack([x1, x2]))
         finite = np.all(np.isfinite(X), axis=1)
         depth = point_depths(P, np.where(finite[:, None], X, 0.0))
@@ -210,7 +242,7 @@ def _clipped(line: np.ndarray, width: int, height: int) -> np.ndarray | None:
     return np.stack([start[0], end[0]]) if valid[0] else None
 
 
-def pick(geometry: TwoViewGeometry, pixel: Any, *, image: Literal[1, 2] = 1, far: float = 10.0) -> PixelPick:
+def pick(geometry: TwoViewGeometry, pixel: Any, *, image: int = 1, far: float = 10.0) -> PixelPick:
     """What a pixel of image ``image`` determines: its epipolar line in the other image, its ray, the plane.
 
     The line is ``F x`` (a pixel of image 1) or ``F^T x`` (of image 2), from
@@ -224,7 +256,7 @@ def pick(geometry: TwoViewGeometry, pixel: Any, *, image: Literal[1, 2] = 1, far
     if geometry.F is None:
         raise MissingInput("F", "no fundamental matrix yet: run estimate_fundamental_8point or _ransac (this "
                                 "dataset has no ground truth to show instead)")
-    line = epipolar_lines(geometry.F, uv.reshape(1, 2), image=image)[0]
+    line = epipolar_lines(geometry.F, uv.reshape(1, 2), image=1 if image == 1 else 2)[0]
     other_width, other_height = geometry.sizes[2 - image]
     segment = _clipped(line, other_width, other_height)
     camera = geometry.camera(image)
@@ -243,9 +275,7 @@ def move(geometry: TwoViewGeometry, point: Any, *, extend: float = 1.25) -> Poin
     Raises :class:`MissingInput` without a pose and K, :class:`InvalidValue` for a non-finite point,
     one on a camera plane, or one on the baseline.
     """
-    if not geometry.has_pose:
-        raise MissingInput("pose", "no relative pose yet: run recover_pose (this dataset has no ground truth "
-                                   "pose to show instead)")
+    pose = geometry.require_pose()
     try:
         X = np.asarray(point, dtype=np.float64).reshape(3)
     except (TypeError, ValueError):
@@ -253,13 +283,13 @@ def move(geometry: TwoViewGeometry, point: Any, *, extend: float = 1.25) -> Poin
     if not np.all(np.isfinite(X)):
         raise InvalidValue("point", f"(x, y, z) must be finite numbers, got {tuple(X)}")
     pixels, depths = [], []
-    for image in (1, 2):
-        K, R, t = geometry.camera(image)
+    for K, R, t in ((pose.K1, np.eye(3), np.zeros(3)), (pose.K2, pose.R, pose.t)):
         pixel, depth = project_point(K, R, t, X)
         pixels.append(pixel)
         depths.append(depth)
-    plane = epipolar_plane_corners(*geometry.centres(), X, extend=extend)
-    F = fundamental_from_pose(geometry.K1, geometry.K2, geometry.R, geometry.t)
+    c1, c2 = geometry.centres()
+    plane = epipolar_plane_corners(c1, c2, X, extend=extend)
+    F = fundamental_from_pose(pose.K1, pose.K2, pose.R, pose.t)
     lines = np.stack([epipolar_lines(F, pixels[1].reshape(1, 2), image=2)[0],
                       epipolar_lines(F, pixels[0].reshape(1, 2), image=1)[0]])
     segments = (_clipped(lines[0], *geometry.sizes[0]), _clipped(lines[1], *geometry.sizes[1]))

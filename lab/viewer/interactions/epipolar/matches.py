@@ -51,8 +51,8 @@ class MatchColours(Interaction):
                 return
             self._key = key
             images, x1, x2 = state.get("images"), state.get("x1"), state.get("x2")
-            pair = isinstance(images, ImageSet) and len(images) == 2
-            if not pair or x1 is None or x2 is None or len(x1) != len(x2):
+            if not isinstance(images, ImageSet) or len(images) != 2 or x1 is None or x2 is None \
+                    or len(x1) != len(x2):
                 self.picture, self.counts = None, None
                 self.panel.visible = False
                 self.summary_md.content = "No matches yet: run match_features."

@@ -179,8 +179,8 @@ class BaselineExplorer(Interaction):
             self.apply_button = self.track(gui.add_button("New session with this baseline",
                                                           hint="restart the dataset with the baseline above "
                                                                "and run the steps to the point cloud"))
-            self.apply_button.on_click(lambda _: ctx.guarded(lambda: self._apply(float(self.slider.value),
-                                                                                 wait=False))())
+            slider = self.slider
+            self.apply_button.on_click(lambda _: ctx.guarded(lambda: self._apply(float(slider.value)))())
             self.slider.on_update(lambda _: ctx.guarded(self._preview)())
         carried = ctx.carried if isinstance(ctx.carried, dict) else {}
         self.previous = list(carried.get(CARRY_KEY, ()))
@@ -274,7 +274,10 @@ class BaselineExplorer(Interaction):
         self._plot_series = -1
 
     def _draw(self) -> None:
-        config = uncertainty_plot(self.current, self.previous, *self.near_far, preview=self._preview_record())
+        c = self.current
+        if c is None:
+            return
+        config = uncertainty_plot(c, self.previous, *self.near_far, preview=self._preview_record())
         title = "depth uncertainty u_z = z² u_d / (f B) (m) over depth"
         if self._plot is not None and self._plot_series == len(config["series"]):
             self._plot.data = config["data"]
@@ -284,10 +287,8 @@ class BaselineExplorer(Interaction):
             with self.ctx.plots:
                 self._plot = self.track(self.ctx.gui.add_uplot(
                     config["data"], config["series"], scales=config["scales"], legend=config["legend"],
-                    title=title,
-                    aspect=1.4, order=1001.0))
+                    title=title, aspect=1.4, order=1001.0))
             self._plot_series = len(config["series"])
-        c = self.current
         near, far = self.near_far
         mid = 0.5 * (near + far)
         u_mid = depth_uncertainty_curve(np.array([mid]), focal_px=c.focal_px, baseline=c.baseline,

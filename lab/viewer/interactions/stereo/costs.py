@@ -164,7 +164,7 @@ def cost_plot(curves: CostCurves, *, session_cost: str | None = None) -> dict[st
         xs = x.copy()
 
     def on_grid(row: np.ndarray) -> np.ndarray:
-        if insert_at is None:
+        if insert_at is None or curves.truth is None:
             return row.copy()
         value = float(np.interp(curves.truth, x, row))
         return np.insert(row, insert_at, [value, value])
@@ -330,16 +330,17 @@ class CostCurveExplorer(Interaction):
 
     def _click(self, ray_origin: Any, ray_direction: Any) -> CostCurves:
         with self.lock:
-            self._require_pair()
+            left, _, _ = self._require_pair()
             if self.K is None:
                 raise MissingInput("K", "the rectified camera matrix is missing: run rectify_pair")
-            x, y = click_to_left_pixel(ray_origin, ray_direction, self.K, self.left.width, self.left.height,
-                                       self.depth)
+            x, y = click_to_left_pixel(ray_origin, ray_direction, self.K, left.width, left.height, self.depth)
             return self._pick(x, y)
 
-    def _require_pair(self) -> None:
-        if self.left is None or self.right is None:
+    def _require_pair(self) -> tuple[Image, Image, MatchingSettings]:
+        """The rectified pair and the cost volume's settings; :class:`MissingInput` before the pair."""
+        if self.left is None or self.right is None or self.settings is None:
             raise MissingInput("left", "no rectified pair yet: run rectify_pair")
+        return self.left, self.right, self.settings
 
     def _session_cost(self) -> str | None:
         settings = self.settings
@@ -347,15 +348,14 @@ class CostCurveExplorer(Interaction):
 
     def _pick(self, x: Any, y: Any) -> CostCurves:
         with self.lock:
-            self._require_pair()
-            settings = self.settings
+            left, right, settings = self._require_pair()
             volume = self._state.get("aggregated_cost")
-            if volume is not None and (np.ndim(volume) != 3 or np.shape(volume)[:2] != (self.left.height,
-                                                                                         self.left.width)):
+            size = (left.height, left.width)
+            if volume is not None and (np.ndim(volume) != 3 or np.shape(volume)[:2] != size):
                 volume = None
-            curves = gather_cost_curves(self.left, self.right, x, y, window=settings.window,
+            curves = gather_cost_curves(left, right, x, y, window=settings.window,
                                         max_disparity=settings.max_disparity, aggregated_cost=volume,
-                                        truth_disparity=truth_disparity(self.ctx.session, self.left))
+                                        truth_disparity=truth_disparity(self.ctx.session, left))
             self.curves = curves
             self._syncing = True
             try:
@@ -401,12 +401,11 @@ class CostCurveExplorer(Interaction):
             self.x_input.max, self.y_input.max = left.width - 1, left.height - 1
             s = self.settings
             ours = s.source.startswith("the session")
+            which = f"; its cost: **{s.cost}**)" if ours else ")"
             self.source_md.content = (f"Costs with a {s.window} x {s.window} window over disparities "
-                                      f"0..{s.max_disparity} ({s.source}" + (f"; its cost: "
-                                                                             f"**{s.cost}**)" if ours
-                                                                            else ")")
-                                      + ". Click the left image in the 3D scene or type a pixel; the curves "
-                                        "are in the Plots panel, each scaled to [0, 1].")
+                                      f"0..{s.max_disparity} ({s.source}{which}. Click the left image in the "
+                                      "3D scene or type a pixel; the curves are in the Plots panel, each "
+                                      "scaled to [0, 1].")
             rig_key = (id(left), id(K), id(baseline), self._state.get("cameras") is None)
             if rig_key != self._rig_key:  # redraw the planes and frustums only when they change
                 self._rig_key = rig_key
@@ -444,12 +443,10 @@ class CostCurveExplorer(Interaction):
         if self._state.get("cameras") is None and B > 0:  # reconstruct_points draws them (generic Cameras)
             segments = rig_segments(self.K, B, width, height, self.depth)
             for index, name in enumerate(("left", "right")):
-                self.nodes.put(f"rig/{name}/frustum", lambda index=index, name=name: scene.add_line_segments(
-                    ctx.node("rig", name, "frustum"), points=segments[index], colors=CAMERA_COLORS[index],
-                    thickness=2.0, thickness_units="screen"))
-        for name, centre in (("left", (0.0, 0.0, 0.0)), ("right", (B, 0.0, 0.0))):
-            self.nodes.put(f"rig/{name}/label", lambda name=name, centre=centre: scene.add_label(
-                ctx.node("rig", name, "label"), f"{name} camera", position=centre))
+                self._draw_camera(index, name, segments[index], (B * index, 0.0, 0.0))
+        else:
+            for index, name in enumerate(("left", "right")):
+                self._draw_camera(index, name, None, (B * index, 0.0, 0.0))
         if B > 0:
             self.nodes.put("rig/baseline", lambda: scene.add_line_segments(
                 ctx.node("rig", "baseline"), points=np.array([[[0.0, 0.0, 0.0], [B, 0.0, 0.0]]], np.float32),
@@ -482,17 +479,27 @@ class CostCurveExplorer(Interaction):
         handle.on_click(lambda event: self.ctx.guarded(
             lambda: self._click(event.ray_origin, event.ray_direction))())
 
+    def _draw_camera(self, index: int, name: str, segments: np.ndarray | None,
+                     centre: tuple[float, float, float]) -> None:
+        """Camera ``name``'s label at its centre, and its frustum when ``segments`` are given."""
+        scene, node = self.ctx.scene, self.ctx.node
+        if segments is not None:
+            self.nodes.put(f"rig/{name}/frustum", lambda: scene.add_line_segments(
+                node("rig", name, "frustum"), points=segments, colors=CAMERA_COLORS[index], thickness=2.0,
+                thickness_units="screen"))
+        self.nodes.put(f"rig/{name}/label", lambda: scene.add_label(node("rig", name, "label"),
+                                                                    f"{name} camera", position=centre))
+
     def _draw_pick(self) -> None:
         """The picked pixel's ray from the left camera to its depth (the session's, else the truth's)."""
         self.nodes.drop("pick")
-        curves = self.curves
-        if curves is None or self.K is None:
+        curves, left = self.curves, self.left
+        if curves is None or self.K is None or left is None:
             return
         x, y = curves.pixel
         z = None
         for depth in (self._state.get("depth"), self.ctx.session.truth.get("depth")):
-            if depth is not None and np.shape(depth) == (self.left.height,
-                                                         self.left.width) and depth[y, x] > 0:
+            if depth is not None and np.shape(depth) == (left.height, left.width) and depth[y, x] > 0:
                 z = float(depth[y, x])
                 break
         far = z if z is not None else 4.0 * self.depth
@@ -517,7 +524,9 @@ class CostCurveExplorer(Interaction):
         self._plot_shape = None
 
     def _draw_plot(self) -> None:
-        curves = self.curves
+        curves, left = self.curves, self.left
+        if curves is None or left is None:
+            return
         config = cost_plot(curves, session_cost=self._session_cost())
         shape = tuple(len(a) for a in config["data"])
         title = f"matching costs at ({curves.pixel[0]}, {curves.pixel[1]}), each scaled to [0, 1]"
@@ -530,8 +539,7 @@ class CostCurveExplorer(Interaction):
             with self.ctx.plots:
                 self._plot = self.track(self.ctx.gui.add_uplot(
                     config["data"], config["series"], scales=config["scales"], legend=config["legend"],
-                    title=title,
-                    aspect=1.4, order=1000.0))
+                    title=title, aspect=1.4, order=1000.0))
             self._plot_shape = shape
         session_cost = self._session_cost()
         rows = ["| cost | min at d | |", "|---|---|---|"]
@@ -548,8 +556,8 @@ class CostCurveExplorer(Interaction):
                  else "no true disparity here")
         wta = self._state.get("disparity_wta")
         chosen = ""
-        if wta is not None and np.shape(wta) == (self.left.height, self.left.width):
-            chosen_d = int(np.asarray(wta)[curves.pixel[1], curves.pixel[0]])
+        if wta is not None and np.shape(wta) == (left.height, left.width):
+            chosen_d = int(np.asarray(wta)[curves.pixel[1]][curves.pixel[0]])
             chosen = f"; the session's winner-take-all: **{chosen_d}**"
         self.pick_md.content = (f"Pixel ({curves.pixel[0]}, {curves.pixel[1]}): {truth}{chosen}.\n\n"
                                 + "\n".join(rows))

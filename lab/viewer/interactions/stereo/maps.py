@@ -190,7 +190,7 @@ class DisparityMaps(Interaction):
             self.disparity_panel.label = (f"disparity ({stage}), turbo 0..{maps.scale:.0f} px"
                                           + (", holes black" if stage == "final" else ""))
             self.disparity_panel.visible = True
-            if maps.truth is None:
+            if maps.truth is None or maps.errors is None:
                 self.truth_panel.visible = self.error_panel.visible = False
                 self.summary_md.content = (f"Showing the **{stage}** disparity in the Images panel. This "
                                            "dataset has no ground truth: no error map.")
