@@ -12,7 +12,8 @@ dropdown option, and reads the 3D scene as the page holds it through viser's end
 from __future__ import annotations
 
 import time
-from typing import Any, Callable
+from typing import Any
+from collections.abc import Callable
 
 import cv2
 import httpx
@@ -50,9 +51,10 @@ class ViewerPage:
         self.page = page
 
     @staticmethod
-    def eventually(read: Callable[[], Any], check: Callable[[Any], bool], *, timeout: float = WAIT_MS / 1000) -> Any:
-        """Poll ``read()`` until ``check`` accepts it and return that value; on timeout, return the last one read
-        (the caller's assertion then shows what the page held)."""
+    def eventually(read: Callable[[], Any], check: Callable[[Any], bool], *,
+                   timeout: float = WAIT_MS / 1000) -> Any:
+        """Poll ``read()`` until ``check`` accepts it and return that value; on timeout, return the last one
+        read (the caller's assertion then shows what the page held)."""
         deadline = time.monotonic() + timeout
         value = read()
         while not check(value) and time.monotonic() < deadline:
@@ -69,7 +71,8 @@ class ViewerPage:
 
     @staticmethod
     def number_boxes(scope: Any, label: str) -> Any:
-        """The typed-number boxes of the input labelled ``label`` in ``scope`` (a slider has one, a vector two)."""
+        """The typed-number boxes of the input labelled ``label`` in ``scope`` (a slider has one, a vector
+        two)."""
         return scope.locator(f"xpath=.//label[normalize-space()='{label}']"
                              "/ancestor::div[.//input[@type='text']][1]//input[@type='text']")
 
@@ -77,7 +80,7 @@ class ViewerPage:
         """Type ``values`` into the boxes of input ``label``, as a student does, each followed by Enter."""
         boxes = self.number_boxes(scope, label)
         assert boxes.count() == len(values), f"{label!r} has {boxes.count()} number boxes, not {len(values)}"
-        for box, value in zip(boxes.all(), values):
+        for box, value in zip(boxes.all(), values, strict=True):
             box.fill(f"{value:g}")
             box.press("Enter")
 
@@ -90,7 +93,8 @@ class ViewerPage:
 
     def choose(self, scope: Any, label: str, option: str) -> None:
         """Pick ``option`` in the dropdown labelled ``label`` in ``scope``."""
-        scope.locator(f"xpath=.//label[normalize-space()='{label}']/ancestor::div[.//input][1]//input").first.click()
+        field = f"xpath=.//label[normalize-space()='{label}']/ancestor::div[.//input][1]//input"
+        scope.locator(field).first.click()
         self.page.get_by_role("option", name=option, exact=True).click()
 
     # --- scene -------------------------------------------------------------------------------------
@@ -101,11 +105,12 @@ class ViewerPage:
         return sorted(name for name in names if name.startswith(prefix))
 
     def node_type(self, name: str) -> str | None:
-        return self.page.evaluate("(name) => { const n = window.__viserSceneTree.getState()[name]; "
-                                  "return n ? n.message.type : null; }", name)
+        return self.page.evaluate("(name) => { const n = window.__viserSceneTree.getState()[name]; return n "
+                                  "? n.message.type : null; }", name)
 
     def node_prop(self, name: str, key: str) -> Any:
-        """Prop ``key`` of node ``name`` as the page holds it (typed arrays as numpy arrays); None when absent."""
+        """Prop ``key`` of node ``name`` as the page holds it (typed arrays as numpy arrays); None when
+        absent."""
         found = self.page.evaluate(_NODE_PROPS, [name, key])
         if found is None:
             return None
@@ -151,7 +156,8 @@ def viewer_page(browser) -> Callable[[str], ViewerPage]:
     def open_page(url: str) -> ViewerPage:
         page = browser.new_page(viewport={"width": 1400, "height": 900})
         page.goto(url, timeout=WAIT_MS)
-        page.wait_for_function("() => window.__viserSceneTree !== undefined && window.__viserMutable !== undefined",
+        page.wait_for_function("() => window.__viserSceneTree !== undefined && window.__viserMutable !== "
+                               "undefined",
                                timeout=WAIT_MS)
         return ViewerPage(page)
 
@@ -166,8 +172,8 @@ class LabAPI:
 
     def create(self, module: str, dataset: str, options: dict[str, Any]) -> str:
         """A new session of ``module`` on ``dataset`` with these dataset options; returns its id."""
-        created = httpx.post(f"{self.url}/api/sessions", json={"module": module, "dataset": dataset,
-                                                                "options": options}, timeout=120)
+        body = {"module": module, "dataset": dataset, "options": options}
+        created = httpx.post(f"{self.url}/api/sessions", json=body, timeout=120)
         assert created.status_code == 201, created.text
         return created.json()["id"]
 

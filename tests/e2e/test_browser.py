@@ -10,6 +10,7 @@ button and compares its output with the reference's. Screenshots go to ``test-ou
 
 from __future__ import annotations
 
+import contextlib
 import os
 import re
 import signal
@@ -18,6 +19,7 @@ import subprocess
 import sys
 import time
 from pathlib import Path
+from typing import Any
 
 import httpx
 import pytest
@@ -25,14 +27,15 @@ import pytest
 ROOT = Path(__file__).resolve().parents[2]
 OUTPUT = ROOT / "test-output"
 CHROMIUM = "/usr/bin/chromium"
-CHROMIUM_ARGS = ["--headless", "--no-sandbox", "--enable-unsafe-swiftshader", "--disable-gpu", "--no-first-run",
+CHROMIUM_ARGS = ["--headless", "--no-sandbox", "--enable-unsafe-swiftshader",
+                 "--disable-gpu", "--no-first-run",
                  "--disable-background-networking", "--disable-component-update", "--disable-sync"]
 TIMEOUT_MS = 60_000
 
 
 # The module the tests drive, served by the CLI exactly as a user starts it.
-MODULE, FIRST_STEP, SECOND_STEP, LONG_STEP, METRIC = ("calibration", "detect_corners", "estimate_homographies",
-                                                      "refine_calibration", "views_found")
+MODULE, FIRST_STEP, SECOND_STEP, LONG_STEP, METRIC = (
+    "calibration", "detect_corners", "estimate_homographies", "refine_calibration", "views_found")
 LESSON = "01-calibration"
 SOLUTION = ROOT / "tests" / "fixtures" / "submissions" / "calibration" / "solution.py"
 
@@ -54,7 +57,11 @@ def lab_server():
     OUTPUT.mkdir(exist_ok=True)
     port, viewer_port = free_port(), free_port()
     env = dict(os.environ, PYTHONUNBUFFERED="1")
-    log = open(OUTPUT / "e2e-server.log", "w")
+    with open(OUTPUT / "e2e-server.log", "w") as log:
+        yield from _serve(port, viewer_port, env, log)
+
+
+def _serve(port: int, viewer_port: int, env: dict[str, str], log: Any):
     process = subprocess.Popen(server_command(port, viewer_port), cwd=ROOT, env=env, stdout=log,
                                stderr=subprocess.STDOUT, start_new_session=True)
     api_url = f"http://127.0.0.1:{port}"
@@ -63,7 +70,8 @@ def lab_server():
         health = None
         while time.monotonic() < deadline:
             if process.poll() is not None:
-                raise RuntimeError(f"the server exited with {process.returncode}; see {OUTPUT / 'e2e-server.log'}")
+                raise RuntimeError(f"the server exited with {process.returncode}; see "
+                                   f"{OUTPUT / 'e2e-server.log'}")
             try:
                 health = httpx.get(f"{api_url}/api/health", timeout=2).json()
                 break
@@ -72,16 +80,13 @@ def lab_server():
         assert health is not None and health["status"] == "ok", "the lab did not answer /api/health"
         yield api_url, health["viewer_url"]
     finally:
-        try:
+        with contextlib.suppress(ProcessLookupError):
             os.killpg(process.pid, signal.SIGTERM)
-        except ProcessLookupError:
-            pass
         try:
             process.wait(timeout=15)
         except subprocess.TimeoutExpired:
             os.killpg(process.pid, signal.SIGKILL)
             process.wait(timeout=15)
-        log.close()
 
 
 @pytest.fixture
@@ -187,7 +192,7 @@ def test_lesson_mode_shows_the_text_and_compares_a_students_file(lab_server, bro
 
     # the lesson's text beside the pipeline; a session on its module; both in the address bar
     page.get_by_text("Task 1: the normalized DLT homography").first.wait_for(timeout=TIMEOUT_MS)
-    page.wait_for_url(re.compile(rf".*[?&]session=\w+"), timeout=TIMEOUT_MS)
+    page.wait_for_url(re.compile(r".*[?&]session=\w+"), timeout=TIMEOUT_MS)
     assert f"lesson={LESSON}" in page.url
     session_id = re.search(r"session=(\w+)", page.url).group(1)
     assert httpx.get(f"{api_url}/api/sessions/{session_id}", timeout=30).json()["module"] == MODULE

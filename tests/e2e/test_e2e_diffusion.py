@@ -33,8 +33,8 @@ def cloud(view, name: str) -> np.ndarray | None:
 
 
 @pytest.mark.e2e
-def test_diffusion_scrubber_moves_through_the_trace_and_resamples_from_its_controls(lab_server, lab_api,  # noqa: F811
-                                                                                    viewer_page):
+def test_diffusion_scrubber_moves_through_the_trace_and_resamples_from_its_controls(
+        lab_server, lab_api, viewer_page):  # noqa: F811
     viewer_url = lab_server[1]
     session_id = lab_api.create("diffusion", "two_moons", SMALL)
     for step, controls in RUN.items():  # the schedule, the training and the sampling, as a script runs them
@@ -63,7 +63,8 @@ def test_diffusion_scrubber_moves_through_the_trace_and_resamples_from_its_contr
     assert not np.allclose(third, x_t[8], atol=10 * tolerance)  # it moved
     beside = cloud(view, "x0")
     shift = 1.3 * np.ptp(x_t[8][:, 0])
-    np.testing.assert_allclose(beside, x0[3] + [shift, 0.0], atol=FLOAT16 * max(1.0, np.abs(x0[3]).max() + shift))
+    np.testing.assert_allclose(beside, x0[3] + [shift, 0.0],
+                               atol=FLOAT16 * max(1.0, np.abs(x0[3]).max() + shift))
     paths = view.node_points(f"{NODE}/trajectories")
     assert paths.shape == (16 * 3 * 2, 3)
     np.testing.assert_allclose(paths[:2, :2], [x_t[0][0], x_t[1][0]], atol=tolerance * 2)
@@ -72,7 +73,8 @@ def test_diffusion_scrubber_moves_through_the_trace_and_resamples_from_its_contr
     # frame 0 is the noise the sampler started from: no paths yet
     view.type_numbers(scrubber, "frame", 0)
     scrubber.get_by_text("ddim step 0 of 8 (pure noise)", exact=True).wait_for(timeout=TIMEOUT_MS)
-    assert view.eventually(lambda: view.scene_nodes(f"{NODE}/"), lambda n: f"{NODE}/trajectories" not in n) == \
+    assert view.eventually(lambda: view.scene_nodes(f"{NODE}/"),
+                           lambda n: f"{NODE}/trajectories" not in n) == \
         [f"{NODE}/x0", f"{NODE}/x_t"]
     np.testing.assert_allclose(cloud(view, "x_t"), x_t[0], atol=FLOAT16 * max(1.0, np.abs(x_t[0]).max()))
 
@@ -83,8 +85,8 @@ def test_diffusion_scrubber_moves_through_the_trace_and_resamples_from_its_contr
     assert view.slider_value(scrubber, "frame") == (4, 4)
     history = lab_api.history(session_id)
     assert history[-1]["step"] == "sample" and history[-1]["status"] == "ok"
-    assert {k: history[-1]["params"][k] for k in ("sampler", "steps", "count")} == {"sampler": "ddpm", "steps": 4,
-                                                                                     "count": 100}
+    ran = {k: history[-1]["params"][k] for k in ("sampler", "steps", "count")}
+    assert ran == {"sampler": "ddpm", "steps": 4, "count": 100}
     again = np.array(lab_api.value(session_id, "trace")["x_t"], dtype=np.float64)
     assert again.shape == (5, 100, 2)
     tolerance = FLOAT16 * max(1.0, np.abs(again[4]).max())

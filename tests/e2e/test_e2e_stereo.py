@@ -42,7 +42,8 @@ def test_stereo_viewer_shows_the_interactions(lab_server, browser):  # noqa: F81
     page.goto(f"{viewer_url}/?session={session_id}", timeout=TIMEOUT_MS)
     page.get_by_text(re.compile(r"Pixel \(56, 42\): true disparity")).first.wait_for(timeout=TIMEOUT_MS)
     page.get_by_text(re.compile(r"the session's winner-take-all")).first.wait_for(timeout=TIMEOUT_MS)
-    page.get_by_text(re.compile(r"winner-take-all\W+disparity against the truth")).first.wait_for(timeout=TIMEOUT_MS)
+    against = re.compile(r"winner-take-all\W+disparity against the truth")
+    page.get_by_text(against).first.wait_for(timeout=TIMEOUT_MS)
     page.get_by_text(re.compile(r"Baseline B = 0.3 m")).first.wait_for(timeout=TIMEOUT_MS)
     page.wait_for_timeout(2000)  # the image plane and the plots arrive
     page.screenshot(path=str(OUTPUT / "e2e-stereo-maps.png"))

@@ -32,12 +32,14 @@ TEXTURE_NODE = "/explore/texture/efros_leung/texture"
 
 
 def plane_x(col: float, width: int, scale: float, left: float = 0.0) -> float:
-    """Scene x of column ``col`` (pixel centres at integers) on a plane of ``width`` pixels centred at ``left``."""
+    """Scene x of column ``col`` (pixel centres at integers) on a plane of ``width`` pixels centred at
+    ``left``."""
     return left + (col - (width - 1) / 2) * scale
 
 
 @pytest.mark.e2e
-def test_texture_growth_replay_pixel_inspection_quilt_blocks_and_mesh(lab_server, lab_api, viewer_page):  # noqa: F811
+def test_texture_growth_replay_pixel_inspection_quilt_blocks_and_mesh(
+        lab_server, lab_api, viewer_page):  # noqa: F811
     viewer_url = lab_server[1]
     session_id = lab_api.create("texture", "procedural", SMALL)
     lab_api.run(session_id, "synthesize_efros_leung", EL)
@@ -49,14 +51,16 @@ def test_texture_growth_replay_pixel_inspection_quilt_blocks_and_mesh(lab_server
     view = viewer_page(f"{viewer_url}/?session={session_id}")
     page = view.page
     growth = view.folder(GROWTH)
-    growth.get_by_text(re.compile(rf"^{SIDE} x {SIDE} grown in \d+ onion layers")).wait_for(timeout=TIMEOUT_MS)
+    grown = re.compile(rf"^{SIDE} x {SIDE} grown in \d+ onion layers")
+    growth.get_by_text(grown).wait_for(timeout=TIMEOUT_MS)
     assert view.slider_value(growth, "grown pixels") == (SIDE * SIDE, SIDE * SIDE)
 
     # replay the growth: after 20 pixels the plane shows exactly those, in the fill order, the rest dark
     view.type_numbers(growth, "grown pixels", 20)
     grown = fill_order < 20
     frame = view.eventually(lambda: view.node_image(TEXTURE_NODE),
-                            lambda image: image is not None and (image == UNKNOWN).all(axis=2).sum() == SIDE**2 - 20)
+                            lambda image: image is not None
+                            and (image == UNKNOWN).all(axis=2).sum() == SIDE**2 - 20)
     assert frame.shape == (SIDE, SIDE, 3)
     assert np.array_equal((frame == UNKNOWN).all(axis=2), ~grown)
     assert np.array_equal(frame[grown], texture[grown])
@@ -70,7 +74,8 @@ def test_texture_growth_replay_pixel_inspection_quilt_blocks_and_mesh(lab_server
     growth.get_by_text(re.compile(rf"^Pixel \({row}, {col}\) was filled {fill_order[row, col] + 1}th.*"
                                   rf"window at \({top}, {left}\) of the sample")).wait_for(timeout=TIMEOUT_MS)
     nodes = view.eventually(lambda: view.scene_nodes("/explore/texture/efros_leung/"), lambda n: len(n) >= 5)
-    assert {f"/explore/texture/efros_leung/{n}" for n in ("texture", "sample", "window", "candidates", "chosen")} \
+    assert {f"/explore/texture/efros_leung/{n}" for n in ("texture", "sample", "window",
+                                                          "candidates", "chosen")} \
         <= set(nodes)
     # the window's outline on the texture plane: 5 x 5 pixels around (row, col), pixel edges at +-0.5
     scale = 2.0 / SIDE
@@ -85,7 +90,8 @@ def test_texture_growth_replay_pixel_inspection_quilt_blocks_and_mesh(lab_server
 
     # click the texture plane in the canvas, on pixel (5, 2): that pixel is explained, the inputs follow
     view.click_node(TEXTURE_NODE, (plane_x(2, SIDE, scale), plane_x(5, SIDE, scale), 0.0))
-    growth.get_by_text(re.compile(rf"^Pixel \(5, 2\) was filled {fill_order[5, 2] + 1}th")).wait_for(timeout=TIMEOUT_MS)
+    explained = re.compile(rf"^Pixel \(5, 2\) was filled {fill_order[5, 2] + 1}th")
+    growth.get_by_text(explained).wait_for(timeout=TIMEOUT_MS)
     assert [box.input_value() for box in view.number_boxes(growth, "pixel (row, col)").all()] == ["5", "2"]
 
     # quilt over REST while the tab is open: the quilting folder follows; pick block 3 with its slider
@@ -93,27 +99,32 @@ def test_texture_growth_replay_pixel_inspection_quilt_blocks_and_mesh(lab_server
     layout = lab_api.value(session_id, "quilting_layout")
     positions, sources = layout["positions"], layout["sources"]
     quilting = view.folder(QUILTING)
-    quilting.get_by_text(re.compile(rf"^Block 1 at \({positions[1][0]}, {positions[1][1]}\) of the quilt")).wait_for(
-        timeout=TIMEOUT_MS)
+    first = re.compile(rf"^Block 1 at \({positions[1][0]}, {positions[1][1]}\) of the quilt")
+    quilting.get_by_text(first).wait_for(timeout=TIMEOUT_MS)
     assert view.slider_value(quilting, "block") == (1, len(positions) - 1)
     view.type_numbers(quilting, "block", 3)
     (y, x), (sy, sx) = positions[3], sources[3]
-    quilting.get_by_text(re.compile(rf"^Block 3 at \({y}, {x}\) of the quilt, copied from \({sy}, {sx}\) of the "
-                                    r"sample\. .*along the cut")).wait_for(timeout=TIMEOUT_MS)
+    third = re.compile(rf"^Block 3 at \({y}, {x}\) of the quilt, copied from \({sy}, {sx}\) of the "
+                       r"sample\. .*along the cut")
+    quilting.get_by_text(third).wait_for(timeout=TIMEOUT_MS)
     quilt_scale = 2.0 / 30
     box = view.eventually(lambda: view.node_points("/explore/texture/quilting/block"),
-                          lambda p: p is not None and abs(p[:, 0].min() - plane_x(x - 0.5, 30, quilt_scale)) < 1e-4)
+                          lambda p: p is not None
+                          and abs(p[:, 0].min() - plane_x(x - 0.5, 30, quilt_scale)) < 1e-4)
     np.testing.assert_allclose([box[:, 0].min(), box[:, 0].max()],
-                               [plane_x(x - 0.5, 30, quilt_scale), plane_x(x + QUILT["block"] - 0.5, 30, quilt_scale)],
+                               [plane_x(x - 0.5, 30, quilt_scale),
+                                plane_x(x + QUILT["block"] - 0.5, 30, quilt_scale)],
                                atol=1e-4)
 
     # the texture on a mesh: Efros–Leung's (the first made) until the student picks the quilt, then its shape
     mesh = view.folder(MESH)
-    mesh.get_by_text(f"efros_leung ({SIDE} x {SIDE}) on a torus, repeated 2x.", exact=True).wait_for(timeout=TIMEOUT_MS)
+    mesh.get_by_text(f"efros_leung ({SIDE} x {SIDE}) on a torus, repeated 2x.",
+                     exact=True).wait_for(timeout=TIMEOUT_MS)
     view.choose(mesh, "texture", "quilting")
     mesh.get_by_text("quilting (30 x 30) on a torus, repeated 2x.", exact=True).wait_for(timeout=TIMEOUT_MS)
     view.choose(mesh, "shape", "cylinder")
-    mesh.get_by_text("quilting (30 x 30) on a cylinder, repeated 2x.", exact=True).wait_for(timeout=TIMEOUT_MS)
+    mesh.get_by_text("quilting (30 x 30) on a cylinder, repeated 2x.",
+                     exact=True).wait_for(timeout=TIMEOUT_MS)
     assert view.node_type("/explore/texture/mesh/surface") == "GlbMessage"
     page.wait_for_timeout(1000)  # the mesh arrives before the screenshot
     page.screenshot(path=str(OUTPUT / "e2e-texture-quilt-mesh.png"))

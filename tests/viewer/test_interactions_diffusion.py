@@ -1,5 +1,6 @@
-"""The diffusion module's interaction: scrub a sampler's frames (points and digits), re-sample from its controls.
-Pure math on a hand-made trace first, then the interaction in a ClientView on tiny trained models."""
+"""The diffusion module's interaction: scrub a sampler's frames (points and digits), re-sample from its
+controls. Pure math on a hand-made trace first, then the interaction in a ClientView on tiny trained
+models."""
 
 from __future__ import annotations
 
@@ -31,7 +32,8 @@ def test_frame_clouds_put_x0_beside_x_t():
     np.testing.assert_allclose(noisy[:, :2], trace.x_t[2], rtol=1e-6)
     assert np.all(noisy[:, 2] == 0)
     offset = beside_offset(trace)
-    assert offset[0] == pytest.approx(1.3 * np.ptp(trace.x_t[-1][:, 0]), rel=1e-6) and offset[1] == offset[2] == 0
+    assert offset[0] == pytest.approx(1.3 * np.ptp(trace.x_t[-1][:, 0]),
+                                      rel=1e-6) and offset[1] == offset[2] == 0
     np.testing.assert_allclose(clean[:, :2] - offset[:2], trace.x0[2], rtol=1e-5, atol=1e-6)
 
 
@@ -113,7 +115,8 @@ def test_scrubbing_points_and_resampling(view):
     view.refresh(force=True)
     assert view.session.state["trace"].steps == 4 and part.trace.steps == 4 and part.index == 4
     # only the step count changed: the sampler shown and the last run's sample count are kept
-    assert view.session.history[-1].params["sampler"] == "euler" and len(view.session.state["generated"]) == 100
+    assert view.session.history[-1].params["sampler"] == "euler"
+    assert len(view.session.state["generated"]) == 100
     # guidance on an unconditional model: a clear error, the old result kept
     part.resample(guidance_scale=2.0)
     view.refresh(force=True)
@@ -143,7 +146,7 @@ def test_digits_show_image_grids(server, store):
     view.refresh(force=True)
     part = scrubber(view)
     assert part.trace.kind == "digits" and part.image_handles is not None
-    noisy, clean = part.grids
+    noisy, _clean = part.grids
     assert noisy.shape == (19, 91)
     part.show_frame(0)
     assert not np.allclose(part.grids[0], noisy)  # the first frame is noise

@@ -17,7 +17,8 @@ from lab.geometry.camera_views import (camera_centre, click_to_pixel, epipolar_p
 from lab.geometry.two_view import fundamental_from_pose
 from lab.viewer.drawing import draw_overlays, match_pair_image
 from lab.viewer.interactions.epipolar import (INTERACTIONS, EpipolarExplorer, MatchColours, PoseCandidates,
-                                              analyse_candidates, candidate_layout, candidate_points, check_pixel,
+                                              analyse_candidates, candidate_layout,
+                                              candidate_points, check_pixel,
                                               explorer_overlays, move, pick, scene_depths, two_view_geometry)
 
 #: A small synthetic pair: 120 points, 0.5 px noise, 30 % outliers, 320 x 240 images.
@@ -66,7 +67,7 @@ def test_pixel_ray_passes_through_the_3d_point_that_projects_there(loaded):
     truth = loaded.truth
     for K, R, t, pixels in ((truth["K1"], np.eye(3), np.zeros(3), truth["x1_exact"]),
                             (truth["K2"], truth["R"], truth["t"], truth["x2_exact"])):
-        for pixel, point in zip(pixels[:20], truth["points3d"][:20]):
+        for pixel, point in zip(pixels[:20], truth["points3d"][:20], strict=True):
             origin, direction = pixel_ray(K, R, t, pixel)
             assert np.allclose(origin, camera_centre(R, t))
             assert np.isclose(np.linalg.norm(direction), 1.0)
@@ -84,7 +85,7 @@ def test_lift_pixels_then_a_click_ray_gives_the_pixel_back(loaded):
         depth = (lifted @ R.T + t)[:, 2]
         assert np.allclose(depth, 0.35)
         assert np.allclose(np.array([project_point(K, R, t, X)[0] for X in lifted]), pixels)
-        for pixel, X in zip(pixels, lifted):
+        for pixel, X in zip(pixels, lifted, strict=True):
             assert np.allclose(click_to_pixel(viewer, X - viewer, K, R, t, 0.35), pixel, atol=1e-8)
 
 
@@ -98,7 +99,7 @@ def test_click_rays_that_miss_the_image_plane_are_refused(loaded):
 
 def test_project_point_known_answer_and_depth(loaded):
     truth = loaded.truth
-    for X, x1, x2 in zip(truth["points3d"][:20], truth["x1_exact"], truth["x2_exact"]):
+    for X, x1, x2 in zip(truth["points3d"][:20], truth["x1_exact"], truth["x2_exact"], strict=False):
         pixel1, depth1 = project_point(truth["K1"], np.eye(3), np.zeros(3), X)
         pixel2, depth2 = project_point(truth["K2"], truth["R"], truth["t"], X)
         assert np.allclose(pixel1, x1) and np.allclose(pixel2, x2)
@@ -115,7 +116,7 @@ def test_epipolar_plane_holds_both_centres_and_cuts_the_images_along_the_epipola
     c1, c2 = np.zeros(3), camera_centre(R, t)
     F = fundamental_from_pose(K, K, R, t)
     assert np.allclose(F / np.sign(F[2, 2]), truth["F"] / np.sign(truth["F"][2, 2]), atol=1e-9)
-    for X, x1, x2 in zip(truth["points3d"][:10], truth["x1_exact"], truth["x2_exact"]):
+    for X, x1, x2 in zip(truth["points3d"][:10], truth["x1_exact"], truth["x2_exact"], strict=False):
         quad = epipolar_plane_corners(c1, c2, X, extend=1.5)
         assert quad.shape == (4, 3) and np.allclose(quad[:2], [c1, c2])
         normal = np.cross(c2 - c1, X - c1)
@@ -134,7 +135,8 @@ def test_image_placement_covers_each_pixel_ray(loaded):
     truth = loaded.truth
     K, R, t = truth["K2"], truth["R"], truth["t"]
     placement = image_placement(K, R, t, 320, 240, 0.5)
-    assert placement.render_width == pytest.approx(0.5 * 320 / 300) and placement.render_height == pytest.approx(0.4)
+    assert placement.render_width == pytest.approx(0.5 * 320 / 300)
+    assert placement.render_height == pytest.approx(0.4)
     assert np.allclose(placement.rotation, R.T)
     assert np.allclose(project_point(K, R, t, placement.position)[0], (159.5, 119.5))
     corners = np.array([project_point(K, R, t, c)[0] for c in placement.corners])
@@ -161,7 +163,8 @@ def test_exactly_one_candidate_passes_cheirality_and_it_is_the_recovered_pose(lo
     analysis = analyse_candidates(candidates, truth["K1"], truth["K2"], x1, x2, source="truth")
     assert analysis.total == len(x1)
     assert analysis.counts[analysis.chosen] == len(x1)  # every exact pair in front of both cameras
-    assert np.sum(analysis.counts == len(x1)) == 1 and np.all(np.delete(analysis.counts, analysis.chosen) < len(x1))
+    assert np.sum(analysis.counts == len(x1)) == 1 and np.all(np.delete(analysis.counts,
+                                                                        analysis.chosen) < len(x1))
     chosen = analysis.candidates[analysis.chosen]
     assert np.allclose(chosen[:, :3], truth["R"], atol=1e-9)
     assert np.allclose(chosen[:, 3], truth["t"] / np.linalg.norm(truth["t"]), atol=1e-9)
@@ -170,7 +173,8 @@ def test_exactly_one_candidate_passes_cheirality_and_it_is_the_recovered_pose(lo
     # the points drawn: the chosen candidate's are the true points up to the baseline's length
     points, in_front = candidate_points(candidates, truth["K1"], truth["K2"], x1[:10], x2[:10])
     assert points.shape == (4, 10, 3) and in_front.shape == (4, 10)
-    assert np.allclose(points[analysis.chosen] * np.linalg.norm(truth["t"]), truth["points3d"][:10], rtol=1e-6)
+    assert np.allclose(points[analysis.chosen] * np.linalg.norm(truth["t"]),
+                       truth["points3d"][:10], rtol=1e-6)
     assert in_front[analysis.chosen].all() and not in_front[(analysis.chosen + 2) % 4].any()  # -t: all behind
     assert np.allclose(analysis.offsets[:, 1:], 0.0) and np.all(np.diff(analysis.offsets[:, 0]) > 0)
     with pytest.raises(InvalidValue, match="candidates"):
@@ -198,9 +202,11 @@ def test_geometry_comes_from_the_session_else_the_truth(loaded):
     session = open_session(PIPELINE, "correspondences", SMALL)
     session.run_until("recover_pose")
     geometry = two_view_geometry(session.state, session.truth)
-    assert geometry.f_source.startswith("the session") and geometry.pose_source == "the session (recover_pose)"
+    assert geometry.f_source.startswith("the session")
+    assert geometry.pose_source == "the session (recover_pose)"
     assert geometry.F is session.state["F"] or np.allclose(geometry.F, session.state["F"])
-    assert np.allclose(geometry.t, session.state["pose"][:, 3]) and np.isclose(np.linalg.norm(geometry.t), 1.0)
+    assert np.allclose(geometry.t, session.state["pose"][:,
+                                                         3]) and np.isclose(np.linalg.norm(geometry.t), 1.0)
     session.run("refine_pose")
     assert two_view_geometry(session.state, session.truth).pose_source == "the session (refine_pose)"
     # no truth, nothing computed: F and the pose are unknown (K from the dataset stays)
@@ -229,8 +235,8 @@ def test_pick_and_move_known_answers(loaded):
         moved = move(geometry, truth["points3d"][i])
         assert np.allclose(moved.pixels, [truth["x1_exact"][i], truth["x2_exact"][i]])
         assert np.all(moved.depths > 0)
-        assert line_distance(moved.lines[0], moved.pixels[0]) < 1e-6 and line_distance(moved.lines[1],
-                                                                                        moved.pixels[1]) < 1e-6
+        assert line_distance(moved.lines[0], moved.pixels[0]) < 1e-6
+        assert line_distance(moved.lines[1], moved.pixels[1]) < 1e-6
     overlays = explorer_overlays(geometry, result, moved)
     assert len(overlays[0]) >= 3 and len(overlays[1]) >= 3  # pixel / line, projection, line (+ epipole)
     with pytest.raises(InvalidValue, match="image"):
@@ -265,7 +271,8 @@ def test_the_interactions_are_built_with_the_truth_before_any_step(view):
     assert explorer.geometry.f_source == "the ground truth"
     assert "ground truth" in explorer.source_md.content
     names = explorer.scene_nodes()
-    for part in ("rig/camera1/image", "rig/camera2/image", "rig/camera1/frustum", "point/handle", "point/plane"):
+    for part in ("rig/camera1/image", "rig/camera2/image", "rig/camera1/frustum",
+                 "point/handle", "point/plane"):
         assert part in names
     assert explorer.nodes.handles["rig/camera1/image"].name == f"{EXPLORE_ROOT}/epipolar/rig/camera1/image"
     bounds = explorer.bounds()  # for framing the tab's camera: holds both centres and the point
@@ -290,7 +297,8 @@ def test_click_a_pixel_shows_its_epipolar_line_and_ray(view):
         assert line_distance(result.line, truth["x2_exact"][i]) < 4 * NOISE_PX
         # the session's pose (|t| = 1): the ray passes through the true point, scaled to the baseline
         point = truth["points3d"][i] / np.linalg.norm(truth["t"])
-        assert ray_distance(result.ray[0], result.ray[1] - result.ray[0], point) < 0.02 * np.linalg.norm(point)
+        assert ray_distance(result.ray[0], result.ray[1] - result.ray[0],
+                            point) < 0.02 * np.linalg.norm(point)
     names = explorer.scene_nodes()
     assert {"pick/ray", "pick/plane", "pick/line", "pick/pixel"} <= set(names)
     ray = explorer.nodes.handles["pick/ray"].points
@@ -350,8 +358,8 @@ def test_four_candidates_side_by_side_with_the_chosen_one_highlighted(view):
     view.run("recover_pose", until=True)
     a = candidates.analysis
     assert a.source == "the session (decompose_essential)"
-    assert a.candidates is view.session.state["candidates"] or np.allclose(a.candidates,
-                                                                            view.session.state["candidates"])
+    stored = view.session.state["candidates"]
+    assert a.candidates is stored or np.allclose(a.candidates, stored)
     inliers = int(view.session.state["inliers"].sum())
     assert a.total == inliers and a.counts[a.chosen] >= 0.95 * inliers
     assert np.sum(a.counts >= 0.5 * inliers) == 1  # exactly one passes
@@ -393,7 +401,8 @@ def test_reset_falls_back_to_the_truth_and_survives(view):
     view.reset("estimate_fundamental_8point")
     view.reset("estimate_fundamental_ransac")
     assert "F" not in view.session.state and "pose" not in view.session.state
-    assert explorer.geometry.f_source == "the ground truth" and explorer.geometry.pose_source == "the ground truth"
+    assert explorer.geometry.f_source == "the ground truth"
+    assert explorer.geometry.pose_source == "the ground truth"
     assert explorer.last_pick is not None and explorer.last_point is not None  # redrawn with the truth
     assert "pick/ray" in explorer.scene_nodes()
     assert candidates.analysis.source == "the ground truth E"
@@ -407,7 +416,7 @@ def test_without_truth_a_reset_clears_the_drawing_and_picks_say_why(server, stor
     session = store.create(PIPELINE, "correspondences", SMALL)
     session.truth.clear()  # like a user's photos
     view.open_session(session)
-    explorer, candidates, matches = parts(view)
+    explorer, candidates, _matches = parts(view)
     assert explorer.geometry.F is None and "none yet" in explorer.source_md.content
     assert not any(n.startswith("point/") for n in explorer.scene_nodes())
     assert explorer.pick_pixel(10.0, 10.0) is None
@@ -440,20 +449,21 @@ def test_bad_picks_give_a_clear_error_not_an_exception(view):
 
 def test_rendered_scene_pick_passes_through_the_true_match(server, store):
     view = ClientView(server, store, ModuleCatalog([PIPELINE]), is_client=False, background=False)
-    view.open_session(store.create(PIPELINE, "rendered", {"width": 160, "height": 120, "supersample": 1, "seed": 1}))
+    view.open_session(store.create(PIPELINE, "rendered",
+                                   {"width": 160, "height": 120, "supersample": 1, "seed": 1}))
     explorer, candidates, matches = parts(view)
     view.run("recover_pose", until=True)
     assert view.errors == []
     truth = view.session.truth
     distances = [line_distance(explorer.pick_pixel(*x1).line, x2)
-                 for x1, x2 in zip(truth["x1_exact"][::40], truth["x2_exact"][::40])]
+                 for x1, x2 in zip(truth["x1_exact"][::40], truth["x2_exact"][::40], strict=True)]
     assert np.median(distances) < 1.0
     assert np.allclose(candidates.analysis.candidates[candidates.analysis.chosen], view.session.state["pose"])
     assert matches.counts is not None and matches.counts[0] > 0
 
 
 def test_closing_removes_every_node(view, store):
-    explorer, candidates, matches = parts(view)
+    explorer, candidates, _matches = parts(view)
     handles = list(explorer.nodes.handles.values()) + list(candidates.nodes.handles.values())
     assert handles
     view.open_session(store.create(PIPELINE, "correspondences", SMALL))
@@ -471,7 +481,8 @@ def test_draw_overlays_draws_thick_lines_and_circles_at_the_right_pixels():
     rgb = draw_overlays(image, [line, ring], min_side=400)
     assert rgb.shape == (200, 400, 3)  # enlarged twice, like the panel's images
     assert tuple(rgb[101, 200]) == (255, 255, 0) and tuple(rgb[60, 200]) == (128, 128, 128)
-    assert np.any(np.all(rgb[20:60, 180:220] == (255, 0, 255), axis=2))  # the ring around (100, 20) -> (201, 41)
+    # the ring around (100, 20) -> (201, 41)
+    assert np.any(np.all(rgb[20:60, 180:220] == (255, 0, 255), axis=2))
     assert tuple(rgb[41, 201]) == (128, 128, 128)  # an outline: its centre is untouched
 
 
@@ -486,7 +497,8 @@ def test_viser_callbacks_click_and_drag_reach_the_interaction(view):
     target = lift_pixels(*explorer.geometry.camera(1), truth["x1_exact"][3:4], explorer.depth)[0]
     viewer = np.array([0.3, -1.0, -2.0])
     [entry] = plane._impl.click_cb
-    entry.callback(SimpleNamespace(target=plane, ray_origin=tuple(viewer), ray_direction=tuple(target - viewer)))
+    entry.callback(SimpleNamespace(target=plane, ray_origin=tuple(viewer),
+                                   ray_direction=tuple(target - viewer)))
     assert np.allclose(explorer.last_pick.pixel, truth["x1_exact"][3], atol=1e-6)
     assert line_distance(explorer.last_pick.line, truth["x2_exact"][3]) < 1e-6
     entry.callback(SimpleNamespace(target=plane, ray_origin=(0.0, 0.0, -1.0), ray_direction=(1.0, 0.0, 0.0)))

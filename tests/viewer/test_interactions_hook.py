@@ -4,6 +4,8 @@ session; a failing interaction is shown in the tab and never breaks it."""
 
 from __future__ import annotations
 
+from typing import ClassVar
+
 import numpy as np
 import pytest
 
@@ -18,7 +20,7 @@ class Recorder(Interaction):
     """Draws a marker at the mean of ``cloud`` and counts updates."""
 
     title = "Recorder"
-    made: list["Recorder"] = []
+    made: ClassVar[list[Recorder]] = []
 
     def __init__(self, ctx):
         super().__init__(ctx)
@@ -112,7 +114,7 @@ def test_the_tab_frames_what_interactions_draw_when_the_state_has_no_3d_values(s
     monkeypatch.setattr(viewer_view, "interactions_for", lambda name: [Recorder, Boxed])
     view = ClientView(server, store, ModuleCatalog({"toy": TOY}), is_client=False, background=False)
     view.start({})
-    eye, look_at = view.framing(dict(view.session.state))
+    _eye, look_at = view.framing(dict(view.session.state))
     np.testing.assert_allclose(look_at, [1.0, 1.0, 1.0])
     view.run("lift", until=True)
     cloud = view.session.state["cloud"]
@@ -123,7 +125,8 @@ def test_the_tab_frames_what_interactions_draw_when_the_state_has_no_3d_values(s
 def test_restart_runs_to_a_step_with_params_and_carries_to_the_new_interactions(view):
     old = view.interactions[0]
     assert old.ctx.restart({"count": 3}, run_to="mean_intensity",
-                           params=lambda fresh: {"add_noise": {"sigma": 0.0 if len(fresh.state["images"]) == 3 else 1.0}},
+                           params=lambda fresh: {"add_noise": {
+                               "sigma": 0.0 if len(fresh.state["images"]) == 3 else 1.0}},
                            carry={"note": "from the old tab"})
     view.wait()
     session = view.session
@@ -131,6 +134,7 @@ def test_restart_runs_to_a_step_with_params_and_carries_to_the_new_interactions(
     [noise] = [r for r in session.history if r.step == "add_noise"]
     assert noise.params["sigma"] == 0.0
     assert view.interactions[0].ctx.carried == {"note": "from the old tab"}
-    assert not old.ctx.restart({"count": 99}) and "count" in view.errors[-1]  # out of range: shown, session kept
+    # out of range: shown, session kept
+    assert not old.ctx.restart({"count": 99}) and "count" in view.errors[-1]
     assert view.session is session and view.interactions[0].ctx.carried == {"note": "from the old tab"}
     assert not view.interactions[0].ctx.restart({}, run_to="no_such_step") and view.session is session

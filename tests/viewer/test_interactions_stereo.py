@@ -22,7 +22,8 @@ from lab.viewer.interactions import EXPLORE_ROOT, interactions_for
 from lab.viewer.interactions.stereo import (INTERACTIONS, BaselineExplorer, BaselineRecord, CostCurveExplorer,
                                             DisparityMaps, check_pick, click_to_left_pixel, cost_plot,
                                             depth_range, depth_uncertainty_curve, disparity_stage,
-                                            gather_cost_curves, matching_settings, normalize_curves, rig_segments,
+                                            gather_cost_curves, matching_settings,
+                                            normalize_curves, rig_segments,
                                             searchable_disparity, stereo_maps, uncertainty_plot)
 
 SMALL = {"width": 112, "height": 84, "baseline": 0.3}
@@ -41,7 +42,8 @@ def session():
 
 
 def textured_pixels(session, count: int = 6) -> list[tuple[int, int]]:
-    """Pixels with the most texture (gray variance over 7 x 7) where the truth is smooth, away from the borders."""
+    """Pixels with the most texture (gray variance over 7 x 7) where the truth is smooth, away from the
+    borders."""
     from scipy.ndimage import maximum_filter, minimum_filter
 
     left, truth = session.state["left"], session.truth["disparity"]
@@ -90,7 +92,7 @@ def test_check_pick_rounds_to_pixel_centres_and_refuses_the_outside():
     assert check_pick(-0.5, -0.49, 10, 8) == (0, 0)
     assert check_pick(9.49, 7.2, 10, 8) == (9, 7)
     for x, y in ((10, 0), (-0.6, 0), (0, 7.5), (np.nan, 1), (1, np.inf)):
-        with pytest.raises(InvalidValue, match="outside the left image|finite"):
+        with pytest.raises(InvalidValue, match=r"outside the left image|finite"):
             check_pick(x, y, 10, 8)
     with pytest.raises(InvalidValue, match="two numbers"):
         check_pick("a", 1, 10, 8)
@@ -118,7 +120,8 @@ def test_normalize_curves_maps_each_row_to_0_1_and_keeps_its_minimum():
     assert np.allclose(out[:2].min(axis=1), 0) and np.allclose(out[:2].max(axis=1), 1)
     assert np.array_equal(out[:2].argmin(axis=1), costs[:2].argmin(axis=1))
     assert np.all(out[2] == 0)  # a flat curve: no minimum to favour
-    assert np.allclose(normalize_curves(5 * costs[:2] + 2), out[:2])  # invariant to each cost's unit and offset
+    # invariant to each cost's unit and offset
+    assert np.allclose(normalize_curves(5 * costs[:2] + 2), out[:2])
 
 
 def test_cost_curve_minima_are_the_winner_take_all_disparity_of_the_session_cost(session):
@@ -128,7 +131,8 @@ def test_cost_curve_minima_are_the_winner_take_all_disparity_of_the_session_cost
     wta = session.state["disparity_wta"]
     rng = np.random.default_rng(3)
     pixels = [(0, 0), (left.width - 1, left.height - 1), (5, 40)] + [
-        (int(x), int(y)) for x, y in zip(rng.integers(0, left.width, 12), rng.integers(0, left.height, 12))]
+        (int(x), int(y)) for x, y in zip(rng.integers(0, left.width, 12),
+                                         rng.integers(0, left.height, 12), strict=True)]
     for x, y in pixels:
         curves = gather_cost_curves(left, right, x, y, window=5, max_disparity=MAX_DISPARITY,
                                     aggregated_cost=session.state["aggregated_cost"])
@@ -145,16 +149,19 @@ def test_cost_curve_minima_are_the_winner_take_all_disparity_of_the_session_cost
 def test_the_true_disparity_is_at_the_minimum_on_textured_pixels(session):
     left, right, truth = session.state["left"], session.state["right"], session.truth["disparity"]
     for x, y in textured_pixels(session):
-        curves = gather_cost_curves(left, right, x, y, window=5, max_disparity=MAX_DISPARITY, truth_disparity=truth)
+        curves = gather_cost_curves(left, right, x, y, window=5, max_disparity=MAX_DISPARITY,
+                                    truth_disparity=truth)
         assert curves.truth == pytest.approx(truth[y, x])
         for label in COSTS:
-            assert abs(curves.minimum(label) - curves.truth) <= 1.0, (label, x, y, curves.minima, curves.truth)
+            assert abs(curves.minimum(label) - curves.truth) <= 1.0, (label, x, y,
+                                                                      curves.minima, curves.truth)
 
 
 def test_a_pixel_without_truth_has_none_and_bad_pixels_are_refused(session):
     left, right = session.state["left"], session.state["right"]
     unknown = np.full((left.height, left.width), -1.0)
-    assert gather_cost_curves(left, right, 50, 40, window=5, max_disparity=8, truth_disparity=unknown).truth is None
+    assert gather_cost_curves(left, right, 50, 40, window=5, max_disparity=8,
+                              truth_disparity=unknown).truth is None
     with pytest.raises(InvalidValue, match="outside the left image"):
         gather_cost_curves(left, right, left.width, 0, window=5, max_disparity=8)
 
@@ -162,7 +169,8 @@ def test_a_pixel_without_truth_has_none_and_bad_pixels_are_refused(session):
 def test_cost_plot_marks_each_minimum_and_the_truth_on_one_shared_axis(session):
     left, right, truth = session.state["left"], session.state["right"], session.truth["disparity"]
     x, y = textured_pixels(session, 1)[0]
-    curves = gather_cost_curves(left, right, x, y, window=5, max_disparity=MAX_DISPARITY, truth_disparity=truth)
+    curves = gather_cost_curves(left, right, x, y, window=5, max_disparity=MAX_DISPARITY,
+                                truth_disparity=truth)
     config = cost_plot(curves, session_cost="census")
     data, series = config["data"], config["series"]
     n = len(COSTS)
@@ -179,7 +187,9 @@ def test_cost_plot_marks_each_minimum_and_the_truth_on_one_shared_axis(session):
     assert "session's cost" in series[1 + COSTS.index("census")]["label"]
     assert series[1 + COSTS.index("census")]["width"] > series[1]["width"]
     line = data[-1]
-    assert np.allclose(xs[np.isfinite(line)], curves.truth) and np.nanmax(line) > 1.0 and np.nanmin(line) == 0.0
+    assert np.allclose(xs[np.isfinite(line)], curves.truth)
+    assert np.nanmax(line) > 1.0
+    assert np.nanmin(line) == 0.0
     no_truth = cost_plot(gather_cost_curves(left, right, x, y, window=5, max_disparity=MAX_DISPARITY))
     assert len(no_truth["data"]) == 1 + 2 * n and len(no_truth["data"][0]) == MAX_DISPARITY + 1
 
@@ -192,11 +202,13 @@ def test_depth_uncertainty_curve_is_the_formula():
     # doubling the baseline halves the uncertainty; it grows with the square of depth
     u1 = depth_uncertainty_curve(z, focal_px=500.0, baseline=0.1, disparity_std=0.5)
     assert np.allclose(depth_uncertainty_curve(z, focal_px=500.0, baseline=0.2, disparity_std=0.5), u1 / 2)
-    assert np.allclose(depth_uncertainty_curve(2 * z, focal_px=500.0, baseline=0.1, disparity_std=0.5), 4 * u1)
+    assert np.allclose(depth_uncertainty_curve(2 * z, focal_px=500.0, baseline=0.1,
+                                               disparity_std=0.5), 4 * u1)
     # and it is the module's: depth_from_disparity at d = f B / z
     depth, module = depth_from_disparity(np.array([[10.0, 25.0]]), np.diag([500.0, 500.0, 1.0]), 0.1,
                                          disparity_std=0.5)
-    assert np.allclose(depth_uncertainty_curve(depth[0], focal_px=500.0, baseline=0.1, disparity_std=0.5), module[0])
+    assert np.allclose(depth_uncertainty_curve(depth[0], focal_px=500.0, baseline=0.1,
+                                               disparity_std=0.5), module[0])
     for bad in (np.array([0.0, 1.0]), np.array([np.nan]), np.ones((2, 2))):
         with pytest.raises(InvalidValue, match="depths"):
             depth_uncertainty_curve(bad, focal_px=500.0, baseline=0.1, disparity_std=0.5)
@@ -205,11 +217,12 @@ def test_depth_uncertainty_curve_is_the_formula():
 
 
 def test_uncertainty_plot_has_one_curve_per_baseline_on_one_grid():
-    now, before = BaselineRecord(0.3, 100.0, 0.5), [BaselineRecord(0.12, 100.0, 0.5), BaselineRecord(1.0, 100.0, 0.5)]
+    now, before = BaselineRecord(0.3, 100.0, 0.5), [BaselineRecord(0.12, 100.0, 0.5),
+                                                    BaselineRecord(1.0, 100.0, 0.5)]
     config = uncertainty_plot(now, before, 1.0, 5.0, samples=11)
     z, *curves = config["data"]
     assert np.allclose(z, np.linspace(1.0, 5.0, 11)) and len(curves) == 3
-    for curve, record in zip(curves, [now, *before]):
+    for curve, record in zip(curves, [now, *before], strict=True):
         assert np.allclose(curve, z ** 2 * 0.5 / (100.0 * record.baseline))
     labels = [s["label"] for s in config["series"][1:]]
     assert labels == ["B = 0.3 m (now)", "B = 0.12 m", "B = 1 m"]
@@ -221,7 +234,8 @@ def test_uncertainty_plot_has_one_curve_per_baseline_on_one_grid():
 def test_depth_range_and_settings_known_answers(session):
     truth_depth = session.truth["depth"]
     near, far = depth_range(truth_depth, None)
-    assert near == pytest.approx(truth_depth[truth_depth > 0].min()) and far == pytest.approx(truth_depth.max())
+    assert near == pytest.approx(truth_depth[truth_depth > 0].min())
+    assert far == pytest.approx(truth_depth.max())
     assert depth_range(None, None) == (0.5, 10.0)
     assert depth_range(np.zeros((4, 4)), np.linspace(1, 3, 101)) == pytest.approx((1.02, 2.98))
     defaults = {c.name: c.default for c in PIPELINE.step("cost_volume").controls}
@@ -247,13 +261,16 @@ def test_stereo_maps_against_the_truth(session):
     maps = stereo_maps("winner-take-all", wrong, truth, threshold=2.0, scale=30.0)
     assert maps.scale == 30.0 and maps.scores["bad2_all"] == 1.0 and maps.scores["bad2_pred"] == 1.0
     assert np.array_equal(maps.disparity.pixels, colorize_disparity(wrong, max_disparity=30.0).pixels)
-    assert np.all(maps.errors.pixels[:10, :, 2] > 0.9) and np.all(maps.errors.pixels[10:, :, 0] >= 0.5)  # blue, red
+    assert np.all(maps.errors.pixels[:10, :, 2] > 0.9)  # blue
+    assert np.all(maps.errors.pixels[10:, :, 0] >= 0.5)  # red
     alone = stereo_maps("final", truth, None, threshold=1.0)
     assert alone.truth is None and alone.errors is None and alone.scores == {}
     with pytest.raises(InvalidControl, match="threshold"):
         stereo_maps("final", truth, truth, threshold=0.0)
-    assert disparity_stage({"disparity_wta": truth, "disparity_subpixel": truth + 1}, "latest")[0] == "sub-pixel"
-    assert disparity_stage({}, "latest") is None and disparity_stage({"disparity": truth}, "final")[0] == "final"
+    assert disparity_stage({"disparity_wta": truth, "disparity_subpixel": truth + 1},
+                           "latest")[0] == "sub-pixel"
+    assert disparity_stage({}, "latest") is None
+    assert disparity_stage({"disparity": truth}, "final")[0] == "final"
     with pytest.raises(InvalidValue, match="stage"):
         disparity_stage({}, "sgm")
 
@@ -262,7 +279,7 @@ def test_rig_segments_place_both_cameras_a_baseline_apart():
     K = np.array([[100.0, 0, 49.5], [0, 100.0, 39.5], [0, 0, 1]])
     rig = rig_segments(K, 0.3, 100, 80, 2.0)
     assert rig.shape == (2, 8, 2, 3)
-    assert np.allclose(rig[0, :4, 0], 0.0) and np.allclose(rig[1, :4, 0], [0.3, 0, 0])  # spokes from the centres
+    assert np.allclose(rig[0, :4, 0], 0.0) and np.allclose(rig[1, :4, 0], [0.3, 0, 0])  # spokes: centres
     assert np.allclose(rig[:, :, 1, 2], 2.0) and np.allclose(rig[1, 4:] - rig[0, 4:], [0.3, 0, 0], atol=1e-6)
     assert np.allclose(rig[0, 4, 0], [-50 * 2 / 100, -40 * 2 / 100, 2.0])  # the outline's top-left corner
 
@@ -320,7 +337,8 @@ def test_a_click_on_the_left_image_plane_in_the_scene_picks_that_pixel(view):
     plane = costs.nodes.handles["rig/left/image"]
     [entry] = plane._impl.click_cb
     other = lift_pixels(K, np.eye(3), np.zeros(3), np.array([[10.0, 70.0]]), costs.depth)[0]
-    entry.callback(SimpleNamespace(target=plane, ray_origin=tuple(viewer), ray_direction=tuple(other - viewer)))
+    entry.callback(SimpleNamespace(target=plane, ray_origin=tuple(viewer),
+                                   ray_direction=tuple(other - viewer)))
     assert costs.curves.pixel == (10, 70)
     entry.callback(SimpleNamespace(target=plane, ray_origin=(0.0, 0.0, -1.0), ray_direction=(1.0, 0.0, 0.0)))
     assert "edge-on" in view.errors[-1]
@@ -337,10 +355,11 @@ def test_a_pick_outside_the_image_is_a_clear_error_in_the_tab(view):
 
 
 def test_maps_and_the_point_cloud_with_both_cameras(view):
-    maps, costs, baseline = parts(view)
+    maps, costs, _baseline = parts(view)
     run_to(view, "winner_take_all")
     assert maps.maps.stage == "winner-take-all" and maps.disparity_panel.visible and maps.error_panel.visible
-    assert maps.maps.scale == pytest.approx(view.session.truth["disparity"].max())  # the truth's colours in full
+    # the truth's colours in full
+    assert maps.maps.scale == pytest.approx(view.session.truth["disparity"].max())
     assert "bad-2" in maps.summary_md.content
     run_to(view, "reconstruct_points")
     state = view.session.state
@@ -366,7 +385,8 @@ def test_the_baseline_slider_restarts_the_rig_and_runs_to_the_point_cloud(view):
     session = view.session
     assert session is not first and session.options["baseline"] == pytest.approx(0.6)
     assert session.dataset == "synthetic" and session.options["width"] == 112
-    assert session.state["baseline"] == pytest.approx(0.6) and session.step_status()["reconstruct_points"] == "done"
+    assert session.state["baseline"] == pytest.approx(0.6)
+    assert session.step_status()["reconstruct_points"] == "done"
     assert np.allclose(session.state["cameras"].centers[1], [0.6, 0, 0])
     # the old session's controls, the range widened to the larger true disparities (d = f B / Z doubles)
     [record] = [r for r in session.history if r.step == "cost_volume"]
@@ -420,7 +440,8 @@ def test_closing_removes_every_node_and_plot(view, store):
 
 
 def test_image_values_are_left_to_the_generic_drawing(view):
-    """The interactions add what the generic drawing lacks: it draws the pair and the final disparity image."""
+    """The interactions add what the generic drawing lacks: it draws the pair and the final disparity
+    image."""
     run_to(view, "filter_disparity")
     assert {"left", "right", "disparity_image"} <= set(view.drawer.drawn)
     assert isinstance(view.session.state["disparity_image"], Image)

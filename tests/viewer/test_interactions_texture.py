@@ -14,7 +14,8 @@ from lab.modules.texture import PIPELINE, efros_leung, image_quilting
 from lab.viewer.app import ClientView, ModuleCatalog
 from lab.viewer.interactions import EXPLORE_ROOT, interactions_for
 from lab.viewer.interactions.texture import (CUT_COLOR, INTERACTIONS, GrowthExplorer, MeshViewer, Plane,
-                                             QuiltExplorer, available_textures, block_at, cut_mask, fill_order_image,
+                                             QuiltExplorer, available_textures, block_at,
+                                             cut_mask, fill_order_image,
                                              growth_frame, mesh_for, overlap_panel, plane_pixel)
 
 OPTIONS = {"pattern": "blobs", "size": 20, "target_size": 24}
@@ -69,8 +70,8 @@ def test_fill_order_and_growth_frames_show_what_was_filled_when():
 
 
 def test_block_at_and_the_overlap_panel_show_the_cut():
-    pixels, source, layout = image_quilting(sample(24), size=(24, 24), block=10, overlap=3,
-                                            rng=np.random.default_rng(0))
+    _pixels, _source, layout = image_quilting(sample(24), size=(24, 24), block=10, overlap=3,
+                                              rng=np.random.default_rng(0))
     assert block_at(layout, 0, 0) == 0
     assert block_at(layout, 23, 23) == len(layout.positions) - 1
     panel = overlap_panel(layout, 1)  # the second block overlaps the first on its left

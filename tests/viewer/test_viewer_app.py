@@ -5,7 +5,8 @@ steps is plotted, Cancel works, and changes made behind the viewer's back (REST)
 from __future__ import annotations
 
 import time
-from typing import Annotated, Generator, Literal
+from typing import Annotated, Literal
+from collections.abc import Generator
 
 import numpy as np
 import pytest
@@ -41,7 +42,8 @@ class Echo:
 def every_control(images: ImageSet, *, flag: bool = True, label: str = "hi",
                   bounded: Annotated[float, Range(0.1, 10.0)] = 1.0, free: float = 2.5,
                   small: Annotated[int, Range(0, 20)] = 4, big: Annotated[int, Range(0, 100000)] = 7,
-                  unbounded_int: int = 3, choice: Literal[1, 2, 3] = 2, colour: Literal["red", "blue"] = "blue",
+                  unbounded_int: int = 3, choice: Literal[1, 2, 3] = 2,
+                  colour: Literal["red", "blue"] = "blue",
                   offset: tuple[float, float] = (1.0, -1.0), size: tuple[int, int, int] = (1, 2, 3),
                   names: tuple[str, str] = ("a", "b")) -> Echo:
     """Echo every control.
@@ -56,12 +58,14 @@ def blank(*, count: Annotated[int, Range(1, 4)] = 2) -> Loaded:
     return Loaded({"images": ImageSet(tuple(Image(np.zeros((4, 4), np.float32)) for _ in range(count)))})
 
 
-EVERY = Pipeline.build(name="every", title="Every control", summary="", steps=[every_control], datasets=[blank])
+EVERY = Pipeline.build(name="every", title="Every control", summary="",
+                       steps=[every_control], datasets=[blank])
 
 
 def test_widget_kinds_follow_the_control_schema():
     kinds = {c.name: widget_kind(c) for c in EVERY.step("every_control").controls}
-    assert kinds == {"flag": "checkbox", "label": "text", "bounded": "slider", "free": "number", "small": "slider",
+    assert kinds == {"flag": "checkbox", "label": "text", "bounded": "slider",
+                     "free": "number", "small": "slider",
                      "big": "number", "unbounded_int": "number", "choice": "dropdown", "colour": "dropdown",
                      "offset": "vector2", "size": "vector3", "names": "text"}
 
@@ -77,8 +81,10 @@ def test_widgets_show_defaults_ranges_and_round_trip_through_the_schema(server, 
     assert (slider.min, slider.max, slider.value, slider.step) == (0.1, 10.0, 1.0, 0.01)
     assert "a bounded float" in slider.hint and "range [0.1, 10]" in slider.hint
     assert isinstance(handles["small"], viser.GuiSliderHandle) and handles["small"].step == 1
-    assert isinstance(handles["big"], viser.GuiNumberHandle) and (handles["big"].min, handles["big"].max) == (0, 100000)
-    assert isinstance(handles["choice"], viser.GuiDropdownHandle) and handles["choice"].options == ("1", "2", "3")
+    assert isinstance(handles["big"], viser.GuiNumberHandle) and (handles["big"].min,
+                                                                  handles["big"].max) == (0, 100000)
+    assert isinstance(handles["choice"], viser.GuiDropdownHandle)
+    assert handles["choice"].options == ("1", "2", "3")
     assert handles["colour"].value == "blue"
     assert isinstance(handles["offset"], viser.GuiVector2Handle) and handles["offset"].value == (1.0, -1.0)
     assert isinstance(handles["size"], viser.GuiVector3Handle)
@@ -100,7 +106,8 @@ def test_toy_steps_are_listed_in_order_with_status(view):
     assert labels == ["1. Add noise › ready", "2. Mean intensity · blocked", "3. Lift · blocked"]
     row = view.rows["add_noise"]
     assert row.buttons.options == ("Run", "Run to here", "Reset")
-    assert (row.controls["sigma"].min, row.controls["sigma"].max, row.controls["sigma"].value) == (0.0, 1.0, 0.1)
+    assert (row.controls["sigma"].min, row.controls["sigma"].max,
+            row.controls["sigma"].value) == (0.0, 1.0, 0.1)
     assert row.controls["mode"].options == ("gaussian", "uniform")
     assert isinstance(view.rows["lift"].controls["iterations"], viser.GuiSliderHandle)
 
@@ -145,7 +152,8 @@ def test_run_to_here_runs_missing_steps_with_progress(server, view):
     assert list(view.tab.loss_plot.data[0]) == list(range(1, 13))
     assert view.tab.loss_plot.data[1][-1] == pytest.approx(0.5 ** 12)
     assert view.tab.progress_bar.value == pytest.approx(100.0)
-    assert view.tab.progress_text.content.startswith("**lift**: iteration 12/12") and "**ok**" in view.tab.progress_text.content
+    assert view.tab.progress_text.content.startswith("**lift**: iteration 12/12")
+    assert "**ok**" in view.tab.progress_text.content
     assert view.tab.cancel_button.disabled  # nothing left to cancel
     assert isinstance(server.scene.get_handle_by_name("/lab/cloud"), viser.PointCloudHandle)
 
@@ -156,7 +164,7 @@ def test_progress_of_a_long_step_run_over_rest_is_shown(view):
     session.run("lift", {"iterations": 5})  # a script's run: the view listens to the session
     view.poll()
     assert view.tab.progress_folder.visible and list(view.tab.loss_plot.data[0]) == [1, 2, 3, 4, 5]
-    assert "**ok**" in view.tab.progress_text.content and "3. Lift ✓ done" == view.rows["lift"].folder.label
+    assert "**ok**" in view.tab.progress_text.content and view.rows["lift"].folder.label == "3. Lift ✓ done"
 
 
 def test_reset_removes_outputs_and_drawings(server, view):
@@ -280,7 +288,9 @@ def test_formatting_helpers():
     assert format_number(1e-7) == "1.000e-07"
     assert format_number([0.1, 0.5, 0.2, 0.3, 0.9]) == "5 values, max 0.9"
     text = metrics_markdown(TOY.step("add_noise"), {"mean_abs_change": 0.5, "extra": 1}, ["view 3: no board"])
-    assert "| mean_abs_change | 0.5 intensity |" in text and "extra (evaluation)" in text and "⚠ view 3" in text
+    assert "| mean_abs_change | 0.5 intensity |" in text
+    assert "extra (evaluation)" in text
+    assert "⚠ view 3" in text
 
 
 def test_add_control_widget_for_a_required_number(server):

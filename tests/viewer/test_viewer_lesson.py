@@ -19,7 +19,8 @@ from lab.lessons.format import LessonCatalog
 from lab.lessons.live import SideBySide
 from lab.lessons.service import DEFAULT_MAX_SUBMISSION_BYTES
 from lab.viewer.app import ClientView, ModuleCatalog, ViewerApp
-from lab.viewer.lesson import NO_LESSON, array_comparison, comparison_markdown, side_by_side_state, upload_text
+from lab.viewer.lesson import (NO_LESSON, array_comparison, comparison_markdown, side_by_side_state,
+                               upload_text)
 from toy_pipeline import TOY
 
 REPO = Path(__file__).resolve().parents[2]
@@ -123,14 +124,16 @@ def test_a_lesson_that_does_not_load_is_reported(server, store, views, tmp_path)
     view.start({})
     mode = view.lesson_mode
     mode.picker.value = "02-broken"
-    assert "no_such_step" in view.tab.error_box.content and "02-broken/tasks.toml" in view.tab.error_box.content
+    assert "no_such_step" in view.tab.error_box.content
+    assert "02-broken/tasks.toml" in view.tab.error_box.content
     assert mode.lesson is None and mode.picker.value == NO_LESSON and view.session.pipeline.name == "toy"
 
 
 def test_the_page_query_opens_a_lesson(server, store, views, lessons):
     view = make_view(server, store, views, lessons)
     view.start({"lesson": "calibration"})  # the short name works too
-    assert view.lesson_mode.lesson.id == "01-calibration" and view.lesson_mode.picker.value == "01-calibration"
+    assert view.lesson_mode.lesson.id == "01-calibration"
+    assert view.lesson_mode.picker.value == "01-calibration"
     assert view.session.pipeline.name == "calibration" and view.errors == []
 
     reloaded = make_view(server, store, views, lessons)  # ?session=ID&lesson=ID: the same session, no new one
@@ -156,7 +159,8 @@ def test_a_session_of_another_module_gets_no_task_widgets(server, store, views, 
 
 # --- the student's code ----------------------------------------------------------------------------
 def test_a_correct_file_runs_in_place_of_the_reference_and_compares_equal(server, store, views, lessons):
-    view = calibration_view(server, store, views, lessons, background=True)  # sandbox work off viser's threads
+    # sandbox work off viser's threads
+    view = calibration_view(server, store, views, lessons, background=True)
     mode = view.lesson_mode
     upload(mode.upload_button, "solution.py", submission("calibration", "solution.py"))
     view.wait()
@@ -204,10 +208,9 @@ def test_a_wrong_file_is_reported_with_what_it_printed(server, store, views, les
     view = calibration_view(server, store, views, lessons)
     mode = view.lesson_mode
     source = submission("calibration", "wrong_transposed_homography.py").decode() + (
-        "\n\n_transposed = estimate_homographies\n\n\n"
-        "def estimate_homographies(corners, board_points, *, normalize=True):\n"
-        "    print('hello from my homographies')\n"
-        "    return _transposed(corners, board_points, normalize=normalize)\n")
+        "\n\n_transposed = estimate_homographies\n\n\ndef estimate_homographies(corners, board_points, *, "
+        "normalize=True):\n    print('hello from my homographies')\n    return _transposed(corners, "
+        "board_points, normalize=normalize)\n")
     upload(mode.upload_button, "mine.py", source.encode())
     mode.compare(HOMOGRAPHIES)
     side = mode.compared[HOMOGRAPHIES]
@@ -215,7 +218,8 @@ def test_a_wrong_file_is_reported_with_what_it_printed(server, store, views, les
     assert side.student["homographies"].shape == side.reference["homographies"].shape
     assert not np.allclose(side.student["homographies"], side.reference["homographies"], rtol=1e-3)
     result = mode.rows[HOMOGRAPHIES].result.content
-    assert "differs from the reference" in result and "relative difference after the best scale factor" in result
+    assert "differs from the reference" in result
+    assert "relative difference after the best scale factor" in result
     assert "**Your code printed:**" in result and "hello from my homographies" in result
     assert "homographies" not in view.session.state  # a comparison never writes the session
 
@@ -243,14 +247,16 @@ def test_broken_files_show_an_error_and_the_viewer_goes_on(server, store, views,
     view = calibration_view(server, store, views, lessons)
     mode = view.lesson_mode
     upload(mode.upload_button, "broken.py", b"def estimate_homographies(:\n")
-    assert "SyntaxError" in view.tab.error_box.content and "Could not load `broken.py`" in mode.code_md.content
+    assert "SyntaxError" in view.tab.error_box.content
+    assert "Could not load `broken.py`" in mode.code_md.content
     assert mode.code is None
 
     upload(mode.upload_button, "notes.txt", b"print('hi')\n")
     assert "unsupported_media_type" in view.tab.error_box.content and mode.code is None
 
     upload(mode.upload_button, "explodes.py", b"raise RuntimeError('boom at import')\n")
-    assert "could not be loaded" in view.tab.error_box.content and "boom at import" in view.tab.error_box.content
+    assert "could not be loaded" in view.tab.error_box.content
+    assert "boom at import" in view.tab.error_box.content
     assert mode.code is None
 
     mode.rows[HOMOGRAPHIES].use_mine.value = True  # on, with no code loaded: a clear message

@@ -16,7 +16,8 @@ import zstandard
 from lab.core import (Cameras, Curve, GaussianSplats, Image, ImageSet, Mesh, PointCloud, Points2D, Segments2D,
                       Segments3D)
 from lab.viewer import export_scene_html
-from lab.viewer.renderers import (POINT_COLORS, SEGMENT_COLORS, WORST_BAR_COLOR, Canvas, StateDrawer, curve_image,
+from lab.viewer.renderers import (POINT_COLORS, SEGMENT_COLORS, WORST_BAR_COLOR, Canvas,
+                                  StateDrawer, curve_image,
                                   overlay_view, overlays_of, scene_extent, to_rgb8)
 
 
@@ -128,7 +129,8 @@ def test_viewpoint_looks_over_the_cameras_shoulders():
 
     assert viewpoint([np.zeros(3)]) is None  # nothing 3D
     # two cameras at z = -1 looking along +z at a board at z = 0
-    cameras = Cameras(np.stack([np.eye(3)] * 2), np.stack([np.eye(3)] * 2), np.array([[0.5, 0, 1.0], [-0.5, 0, 1.0]]),
+    cameras = Cameras(np.stack([np.eye(3)] * 2), np.stack([np.eye(3)] * 2),
+                      np.array([[0.5, 0, 1.0], [-0.5, 0, 1.0]]),
                       width=4, height=3)
     board = Mesh(np.array([[-0.5, -0.5, 0.0], [0.5, -0.5, 0], [0, 0.5, 0]]), np.array([[0, 1, 2]]))
     eye, look_at = viewpoint([cameras, board])
@@ -294,7 +296,8 @@ def decode_embedded_scene(html: str) -> list[dict]:
     """The scene messages inside an exported page (viser's .viser format: zstd(msgpack + buffers))."""
     data = re.search(r'window.__VISER_EMBED_DATA__="([^"]+)"', html).group(1)
     raw = base64.b64decode(data)
-    inner = zstandard.ZstdDecompressor().decompress(raw[8:], max_output_size=int.from_bytes(raw[:8], "little"))
+    inner = zstandard.ZstdDecompressor().decompress(raw[8:],
+                                                    max_output_size=int.from_bytes(raw[:8], "little"))
     length = int.from_bytes(inner[:8], "little")
     payload = msgspec.msgpack.decode(inner[8:8 + length])
     return [message for _, message in payload["messages"]]
@@ -303,7 +306,8 @@ def decode_embedded_scene(html: str) -> list[dict]:
 def test_export_scene_html_is_a_standalone_page_with_the_scene():
     images = ImageSet((Image(np.full((48, 64), 0.5, np.float32), "v0"),))
     state = {"images": images,
-             "cameras": Cameras(np.array([[50.0, 0, 32], [0, 50.0, 24], [0, 0, 1]]), np.eye(3), np.array([0, 0, 2.0]),
+             "cameras": Cameras(np.array([[50.0, 0, 32], [0, 50.0, 24], [0, 0, 1]]), np.eye(3),
+                                np.array([0, 0, 2.0]),
                                 width=64, height=48, image="images"),
              "cloud": PointCloud(np.zeros((4, 3))),
              "per_view_rms": Curve(np.arange(1.0), np.array([0.3]), kind="bar")}
@@ -318,4 +322,5 @@ def test_export_lays_out_images_that_no_camera_carries():
     html = export_scene_html({"left": Image(np.zeros((8, 8), np.float32)),
                               "pair": ImageSet((black(), black()))})
     names = [m.get("name") for m in decode_embedded_scene(html) if m.get("type") == "ImageMessage"]
-    assert sorted(names) == ["/lab/pictures/left", "/lab/pictures/pair/view_000", "/lab/pictures/pair/view_001"]
+    assert sorted(names) == ["/lab/pictures/left", "/lab/pictures/pair/view_000",
+                             "/lab/pictures/pair/view_001"]

@@ -21,7 +21,8 @@ def free_port() -> int:
 @pytest.fixture
 def running():
     store = SessionStore(max_sessions=4)
-    lab = start(host="127.0.0.1", port=free_port(), viewer_port=free_port(), store=store, modules={"toy": TOY})
+    lab = start(host="127.0.0.1", port=free_port(), viewer_port=free_port(), store=store,
+                modules={"toy": TOY})
     yield lab
     lab.stop()
 
