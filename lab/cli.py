@@ -471,7 +471,8 @@ def export(
             from lab.data.exports import write_value
 
             written = write_value(out, session.get(needed[0]), fmt, name=needed[0], index=index)
-    typer.echo(f"wrote {' and '.join(needed)} ({fmt}) to {written}")
+    what_was_written = pipeline.export(fmt).summary if fmt in pipeline.exports else " and ".join(needed)
+    typer.echo(f"wrote {what_was_written} ({fmt}) to {written}")
 
 
 def _values_to_export(pipeline: "Pipeline", what: str | None, fmt: str) -> list[str]:
