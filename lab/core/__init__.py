@@ -1,7 +1,7 @@
-"""The core every front end builds on: steps, pipelines, sessions, the store and value codecs."""
+"""The core every front end builds on: steps, pipelines, the planner, sessions, the store and value codecs."""
 
-from lab.core.errors import (Cancelled, CapacityExceeded, Forbidden, InvalidControl, InvalidValue, LabError, MissingInput,
-                             SessionBusy, StepFailed, UnknownName)
+from lab.core.errors import (Cancelled, CapacityExceeded, Forbidden, InvalidControl, InvalidValue, LabError,
+                             MissingInput, SessionBusy, StepFailed, UnknownName)
 from lab.core.pipeline import DatasetSpec, Export, Loaded, Pipeline, Plan, RunRecord, Session, open_session
 from lab.core.step import Control, Progress, Range, StepSpec, Warnings, describe_step, metric, step_result
 from lab.core.store import SessionStore
@@ -9,8 +9,9 @@ from lab.core.values import (Cameras, Curve, GaussianSplats, Image, ImageSet, Me
                              Segments2D, Segments3D)
 
 __all__ = [
-    "Cancelled", "CapacityExceeded", "Forbidden", "InvalidControl", "InvalidValue", "LabError", "MissingInput", "SessionBusy",
-    "StepFailed", "UnknownName", "DatasetSpec", "Export", "Loaded", "Pipeline", "Plan", "RunRecord", "Session",
-    "open_session", "Control", "Progress", "Range", "StepSpec", "Warnings", "describe_step", "metric", "step_result", "SessionStore", "Cameras", "Curve",
-    "GaussianSplats", "Image", "ImageSet", "Mesh", "PointCloud", "Points2D", "Segments2D", "Segments3D",
+    "Cameras", "Cancelled", "CapacityExceeded", "Control", "Curve", "DatasetSpec", "Export", "Forbidden",
+    "GaussianSplats", "Image", "ImageSet", "InvalidControl", "InvalidValue", "LabError", "Loaded", "Mesh",
+    "MissingInput", "Pipeline", "Plan", "PointCloud", "Points2D", "Progress", "Range", "RunRecord",
+    "Segments2D", "Segments3D", "Session", "SessionBusy", "SessionStore", "StepFailed", "StepSpec",
+    "UnknownName", "Warnings", "describe_step", "metric", "open_session", "step_result",
 ]

@@ -1,7 +1,8 @@
 """A user's image files: list them in a folder by a shell pattern, and read them as :class:`lab.core.Image`.
 
-Shared by the loaders of a user's photos (:func:`lab.data.two_view.photos`,
-:func:`lab.data.checkerboard.folder`, :mod:`lab.data.stereo`). Files are decoded by OpenCV's
+Shared by the loaders of a user's photos (:func:`lab.modules.epipolar.datasets.photos`,
+:func:`lab.modules.calibration.datasets.folder`, :mod:`lab.modules.stereo.datasets`).
+Files are decoded by OpenCV's
 ``imread`` (any depth, alpha dropped, BGR turned into RGB by
 :func:`lab.core.codecs.image_from_cv2`) after their header passed the pixel budget
 (:data:`lab.core.budgets.MAX_IMAGE_PIXELS`): a huge file is refused by name, never decoded.

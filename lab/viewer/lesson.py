@@ -189,9 +189,9 @@ def side_by_side_state(side: SideBySide, state: Mapping[str, Any]) -> dict[str, 
 
 def upload_text(name: str, content: bytes) -> str:
     """The uploaded file as Python source, checked as the REST API checks a submission
-    (``lab.api.lessons.check_upload``: a ``.py`` name, at most the default submission size, UTF-8
+    (``lab.lessons.submission.check_upload``: a ``.py`` name, at most the default submission size, UTF-8
     text without NUL bytes, parsable)."""
-    from lab.api.lessons import check_upload
+    from lab.lessons.submission import check_upload
     from lab.lessons.service import DEFAULT_MAX_SUBMISSION_BYTES
 
     if not name:

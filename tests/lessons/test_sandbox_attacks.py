@@ -201,7 +201,7 @@ def test_with_the_hook_off_the_child_is_unprivileged_alone_and_sees_no_host(atta
         secret.parent.rmdir()
     assert sorted(attacks.call("listing", (str(lab),)).value) == ["__init__.py", "core", "lessons"]
     assert attacks.call("listing", (str(lab / "lessons"),)).value == ["__init__.py", "child.py", "wire.py"]
-    for hidden in (lab / "modules" / "calibration.py", REPO / "lessons" / "01-calibration" / "tasks.toml",
+    for hidden in (lab / "modules" / "calibration" / "steps.py", REPO / "lessons" / "01-calibration" / "tasks.toml",
                    Path("/etc/shadow"), Path("/etc/passwd"), Path("/root/.bash_history")):
         assert attacks.call("read", (str(hidden),)).value.startswith("refused FileNotFoundError"), hidden
 
