@@ -16,16 +16,10 @@ from lab.modules.epipolar.reference import nearest_neighbours_reference
 def two_nearest_scan(dots: np.ndarray, qq: np.ndarray, tt: np.ndarray, start: int, slack: float,
                      first: np.ndarray, second: np.ndarray, unsure: np.ndarray, column_best: np.ndarray,
                      column_index: np.ndarray, column_second: np.ndarray) -> None:
-    """One pass over a block of float32 dot products ``dots`` ``(B, T)`` (query rows ``start ...``): the two
-    nearest train rows of each query and the two nearest queries of each train row, by the squared distances
-    ``qq + tt - 2 dots`` (``qq`` ``(B,)``, ``tt`` ``(T,)`` float64).
+    """One pass of the two-nearest-neighbour scan over a block of float32 dot products ``dots`` ``(B, T)``.
 
-    Writes ``first``, ``second`` ``(B,)`` (train indices, lowest index first on equal values) and ``unsure``
-    ``(B,)``: True when the third nearest train row comes within ``2 slack`` of the second or the two nearest
-    are within ``2 slack`` of each other (``slack`` bounds the error of a float32 distance, so only then can
-    the float64 order differ). Updates ``column_best``, ``column_index``, ``column_second`` ``(T,)`` (the
-    smallest and second smallest squared distance of each train row over the queries seen so far, the
-    index of the smallest, earliest query on equal values).
+    Runs the compiled ``_two_nearest_scan_kernel`` (its docstring gives every shape and the tie and
+    float32-error rules); the tests compare it with its readable reference.
     """
     _two_nearest_scan_kernel(dots, qq, tt, start, slack, first, second, unsure, column_best, column_index,
                              column_second)
