@@ -335,9 +335,6 @@ def test_pipeline_is_registered_with_typed_steps():
 def test_every_name_the_viewer_reads_is_a_view_made_by_a_step_or_a_dataset():
     """PIPELINE.views lists what lab/viewer/interactions/stereo.py reads from a session by name, and each
     is written by a step or loaded by a dataset: a rename fails here, not in a browser."""
-    import re
-    from pathlib import Path
-
     from lab.viewer.interactions import stereo as interactions
 
     made = {name for spec in PIPELINE.steps for name in spec.writes}
@@ -345,13 +342,10 @@ def test_every_name_the_viewer_reads_is_a_view_made_by_a_step_or_a_dataset():
     made |= set(PIPELINE.dataset("synthetic").load({"width": 64, "height": 48, "rectified": False}).state)
     assert PIPELINE.views == frozenset(VIEWS)
     assert set(VIEWS) <= made, sorted(set(VIEWS) - made)
-    source = Path(interactions.__file__).read_text()
-    read = set(re.findall(r'state\.get\("(\w+)"', source)) | set(re.findall(r'state\["(\w+)"\]', source))
-    read |= set(interactions.STAGES.values())
-    for names in re.findall(r"for n in \(([^)]*)\)", source):  # the keys that tell a state change
-        read |= set(re.findall(r'"(\w+)"', names))
-    assert {"left_raw", "calibration", "cost_volume", "aggregated_cost", "disparity"} <= read  # it scans
-    assert read <= PIPELINE.views, sorted(read - PIPELINE.views)
+    # What the interactions read is checked where they read it: tests/viewer/test_views_contract.py finds
+    # every ctx.value / ctx.values name in lab/viewer/interactions (stereo is a package now) and checks it
+    # is in PIPELINE.views; here, the stages the interactions draw are views.
+    assert set(interactions.STAGES.values()) <= PIPELINE.views
 
 
 @pytest.fixture(scope="module")
