@@ -499,7 +499,7 @@ def _export_targets(pipeline: "Pipeline", needed: list[str], until: str | None) 
     if until is None:
         return [step for writers in last_writer.values() for step in writers]
     pipeline.step(until)
-    upstream = set(pipeline.plan(until, available=()).steps)
+    upstream = set(pipeline.upstream(until))
     for name, writers in last_writer.items():
         if writers and writers[0] not in upstream:
             raise InvalidValue("--until", f"{name!r} is written by step {writers[0]!r}, which {until!r} does "

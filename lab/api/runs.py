@@ -376,7 +376,7 @@ def plan_until(session: Session, target: StepSpec, params: Mapping[str, Any] | N
     pipeline = session.pipeline
     params = dict(params or {})
     order = [s.name for s in pipeline.steps]
-    upstream = pipeline.plan(target.name, available=()).steps  # every step the target can need
+    upstream = pipeline.upstream(target.name)
     for name, controls in params.items():
         if name not in order:
             raise InvalidControl(name, f"module {pipeline.name!r} has no step {name!r}; steps are {order}")

@@ -262,6 +262,10 @@ class Pipeline:
         order = tuple(s.name for s in self.steps if s.name in reasons)
         return Plan(steps=order, reasons={name: reasons[name] for name in order}, target=targets)
 
+    def upstream(self, target: str) -> tuple[str, ...]:
+        """Every step ``target`` can need, in order, itself included: its plan on an empty state."""
+        return self.plan(target, available=()).steps
+
     def _reads_rewritten(self, spec: StepSpec, planned: Mapping[str, Any]) -> bool:
         """Whether ``spec`` reads a value that a planned step ahead of it writes."""
         for value in spec.reads:
