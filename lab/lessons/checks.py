@@ -43,6 +43,15 @@ class Outcome:
         return "\n".join(lines)
 
 
+@dataclass(frozen=True)
+class Hint:
+    """What a failed check tells the student about the cause: ``name`` (a ``[hints]`` key of the lesson, a
+    detector, a mutant or a function of ``mistakes.py``; shown as ``[name]``) and the text."""
+
+    name: str
+    text: str
+
+
 def show(value: Any) -> str:
     """A short readable form of an array or number for messages."""
     array = np.asarray(value)
@@ -147,6 +156,50 @@ def equal_up_to_sign(got: np.ndarray, expected: np.ndarray, *, rtol: float = 1e-
     return dataclasses.replace(outcome, summary=outcome.summary + " (after choosing the sign)")
 
 
+def _item_rows(value: np.ndarray) -> np.ndarray:
+    """``(M, ...)`` -> ``(M, K)`` rows, one per item."""
+    array = np.asarray(value, dtype=np.float64)
+    return array.reshape(len(array), -1) if array.ndim >= 2 else array.reshape(-1, 1)
+
+
+def same_set(got: np.ndarray, expected: np.ndarray, *, rtol: float = 1e-6, atol: float = 1e-9,
+             up_to: str = "exact") -> Outcome:
+    """The items along the first axis equal the expected ones in some order (each matched once):
+    pose candidates, a set of solutions. ``up_to``: ``"exact"`` (``allclose`` per item), ``"sign"``
+    (an item may be negated) or ``"scale"`` (an item may have any scale). The matching is the
+    assignment of least total error (``scipy.optimize.linear_sum_assignment``).
+    """
+    from scipy.optimize import linear_sum_assignment
+
+    if up_to not in ("exact", "sign", "scale"):
+        raise ValueError(f'up_to must be "exact", "sign" or "scale", got {up_to!r}')
+    g, e = _item_rows(got), _item_rows(expected)
+    if g.shape != e.shape:
+        return Outcome(False, f"{len(g)} items of size {g.shape[1]}; expected {len(e)} of size {e.shape[1]}")
+    scale = np.maximum(atol + rtol * np.abs(e), 1e-300)  # per expected entry
+
+    def excess(gi: np.ndarray, ei: np.ndarray, allowed: np.ndarray) -> float:
+        candidates = [gi]
+        if up_to == "sign":
+            candidates.append(-gi)
+        if up_to == "scale":
+            norm = float(gi @ gi)
+            candidates = [gi * (float(gi @ ei) / norm)] if norm else [gi]
+        return min(float(np.max(np.abs(c - ei) / allowed)) for c in candidates)
+
+    cost = np.array([[excess(gi, ei, s) for ei, s in zip(e, scale, strict=True)] for gi in g])
+    rows, cols = linear_sum_assignment(np.minimum(cost, 1e300))
+    worst = int(np.argmax(cost[rows, cols]))
+    ratio = float(cost[rows[worst], cols[worst]])
+    passed = ratio <= 1.0
+    up = {"exact": "", "sign": " up to sign", "scale": " up to scale"}[up_to]
+    summary = (f"each of your items matched to an expected one{up}, in any order: the worst match is "
+               f"{ratio:.3g} x the allowed difference (atol {atol:g} + rtol {rtol:g} x |expected|)")
+    shown_expected = show(np.asarray(expected)[cols[worst]]) + f" (expected item {cols[worst]})"
+    shown_got = show(np.asarray(got)[rows[worst]]) + f" (your item {rows[worst]})"
+    return Outcome(passed, summary, shown_expected, shown_got)
+
+
 def rotation_angle(got: np.ndarray, expected: np.ndarray, *, max_deg: float = 0.1) -> Outcome:
     """The angle of ``got^T expected`` (``(..., 3, 3)`` rotations) at most ``max_deg`` degrees."""
     g = np.asarray(got, dtype=np.float64).reshape(-1, 3, 3)
@@ -220,8 +273,8 @@ def at_most_reference(got: Any, expected: Any, *, factor: float = 1.0, margin: f
 
 #: Comparisons by the name ``tasks.toml`` uses.
 COMPARISONS: dict[str, Callable[..., Outcome]] = {f.__name__: f for f in (
-    allclose, equal_up_to_scale, equal_up_to_sign, rotation_angle, relative_error, psnr, bad_pixel_rate,
-    below, above, at_most_reference)}
+    allclose, equal_up_to_scale, equal_up_to_sign, same_set, rotation_angle, relative_error, psnr,
+    bad_pixel_rate, below, above, at_most_reference)}
 
 
 def check_options(compare: str, options: dict[str, Any]) -> tuple[str, str] | None:
@@ -234,6 +287,8 @@ def check_options(compare: str, options: dict[str, Any]) -> tuple[str, str] | No
         default = params[key].default
         numeric = default is inspect.Parameter.empty or isinstance(default, (int, float))
         kind = bool if isinstance(default, bool) else (float if numeric else type(default))
+        if kind is str and not isinstance(value, str):
+            return key, f"must be a string, got {value!r}"
         if kind is bool and not isinstance(value, bool):
             return key, f"must be true or false, got {value!r}"
         if kind is float and (isinstance(value, bool) or not isinstance(value, (int, float))):
@@ -397,16 +452,76 @@ def entry_not(got: np.ndarray, expected: np.ndarray, *, index: list[int], value:
 
 
 def permuted(got: np.ndarray, expected: np.ndarray, *, rtol: float = 1e-3) -> str | None:
-    """Every item of the stack matches an expected item, but in another order."""
-    if got.shape != expected.shape or got.ndim < 3 or len(got) < 2:
+    """Every item of the stack matches a different expected item (exactly, not up to sign or scale), but in
+    another order."""
+    if got.shape != expected.shape or got.ndim < 2 or len(got) < 2:
         return None
-    g, e = _items(got, True), _items(expected, True)
-    if equal_up_to_scale(got, expected, rtol=rtol).passed:
+    if allclose(got, expected, rtol=rtol, atol=1e-9).passed:
         return None
-    for gi in g:
-        if not any(equal_up_to_scale(gi, ei, rtol=rtol, items=False).passed for ei in e):
-            return None
+    if not same_set(got, expected, rtol=rtol, atol=1e-9 * max(float(np.abs(expected).max()), 1.0)).passed:
+        return None
     return "each of your items matches an expected one, but in a different order: keep the order of the views"
+
+
+def _rotation_blocks(array: np.ndarray) -> np.ndarray | None:
+    """The ``3 x 3`` blocks of ``(..., 3, 3)`` rotations or ``(..., 3, 4)`` ``[R | t]``, else None."""
+    if array.ndim < 2 or array.shape[-2] != 3 or array.shape[-1] not in (3, 4):
+        return None
+    return array[..., :3, :3].reshape(-1, 3, 3)
+
+
+def reflection(got: np.ndarray, expected: np.ndarray) -> str | None:
+    """A matrix that should be a rotation (det +1) is a reflection (det -1): an SVD factor not turned into a
+    rotation, or a negated R."""
+    g, e = _rotation_blocks(got), _rotation_blocks(expected)
+    if g is None or e is None or g.shape != e.shape:
+        return None
+    expected_det, got_det = np.linalg.det(e), np.linalg.det(g)
+    if not np.allclose(expected_det, 1.0, atol=1e-6):
+        return None
+    bad = np.flatnonzero(np.abs(got_det + 1.0) < 1e-3)
+    if not len(bad):
+        return None
+    which = f" (item {int(bad[0])} of {len(g)})" if len(g) > 1 else ""
+    return (f"your R has det {got_det[bad[0]]:.3g}{which}: a reflection, not a rotation. A rotation has "
+            "det +1: negate an SVD factor (U or V^T) whose determinant is -1 before building R, rather than "
+            "R itself")
+
+
+def float32_rounding(got: Any, expected: Any) -> str | None:
+    """The result is float32 where the reference's is float64, and the difference is float32's rounding
+    (the raw values, before the grader turns them into float64)."""
+    got_array, expected_array = np.asarray(got), np.asarray(expected)
+    if got_array.dtype != np.float32 or expected_array.dtype != np.float64 \
+            or got_array.shape != expected_array.shape:
+        return None
+    difference = np.abs(got_array.astype(np.float64) - expected_array)
+    allowed = 4 * np.finfo(np.float32).eps * (np.abs(expected_array) + np.abs(expected_array).max())
+    if not np.all(difference <= allowed) or not np.any(difference):
+        return None
+    return (f"your result is float32 (dtype {got_array.dtype}), the expected is float64: the difference, "
+            f"{float(difference.max()):.2g} at most, is float32's rounding. Compute in float64 (do not cast "
+            f"to np.float32)")
+
+
+def structure_hint(got: Any, expected: Any) -> Hint | None:
+    """A named hint for a value of the wrong form (its shape, NaN), beside :func:`structure_problem`'s."""
+    if not isinstance(got, np.ndarray) or not isinstance(expected, np.ndarray):
+        return None
+    if got.shape != expected.shape:
+        if got.shape == (*expected.shape, 1) or got.shape == (1, *expected.shape):
+            return Hint("shape", f"your array has an extra axis of length 1: return shape {expected.shape} "
+                                 "(np.ravel or np.squeeze it, or index with [:, 0])")
+        if expected.shape == (*got.shape, 1):
+            return Hint("shape", f"return shape {expected.shape}: one column, as a 2D array "
+                                 "(reshape(-1, 1))")
+        if got.ndim == expected.ndim >= 2 and got.shape[-2:] == expected.shape[-2:][::-1]:
+            return Hint("shape", "rows and columns swapped: transpose your result or build it the other way")
+        return None
+    if got.dtype.kind == "f" and not np.all(np.isfinite(got)):
+        return Hint("nan", "NaN or inf entries come from a division by zero, the log or square root of a "
+                           "negative number, or an empty selection: print where np.isfinite(result) is False")
+    return None
 
 
 def same_as_reference_with(got: np.ndarray, expected: np.ndarray, *, alternative: Any = None,
@@ -429,8 +544,8 @@ def same_as_mistake(got: np.ndarray, expected: np.ndarray, *, outcome: Outcome |
 
 #: Detectors by the name a hint's ``when`` uses.
 DETECTORS: dict[str, Callable[..., str | None]] = {f.__name__: f for f in (
-    transposed, inverse, negated, scaled, rank_above, entry_zero, entry_not, permuted, same_as_reference_with,
-    same_as_mistake)}
+    transposed, inverse, negated, scaled, rank_above, entry_zero, entry_not, permuted, reflection,
+    same_as_reference_with, same_as_mistake)}
 
 
 #: Detectors the grader runs an alternative for (the reference with other controls, a function of

@@ -7,7 +7,8 @@
     gives them, the step's defaults), a docstring and a body that raises ``NotImplementedError``.
 ``tasks.toml``
     Tables ``[lesson]`` (``module``, optional ``title`` and ``visibility``), ``[limits]`` (:class:`Limits`),
-    ``[datasets.NAME]`` (:class:`CheckDataset`), ``[hints.NAME]`` (:class:`HintRule`: each hint written
+    ``[datasets.NAME]`` (:class:`CheckDataset`, its battery of :class:`DataVariant`), ``[hints.NAME]``
+    (:class:`HintRule`: each hint written
     once, named by the checks that try it) and ``[[tasks]]`` (``name``, ``step``, ``title``) with their
     ``[[tasks.checks]]`` (:class:`Check`; ``hints = ["name", ...]``).
 ``mistakes.py`` (optional)
@@ -114,23 +115,50 @@ class HintRule:
 
 
 @dataclass(frozen=True)
-class CheckDataset:
-    """Data checks run on: a dataset of the module, its options, how its seed is drawn, step controls.
+class DataVariant:
+    """One variant of a check dataset's battery: options over the dataset's, and how it is described."""
 
-    ``seed``: ``"fresh"`` (a new secret seed at every grading, the default), an instructor's integer,
-    or ``"env:NAME"`` (read at grading). ``params``: controls of the pipeline's steps, by step.
+    options: dict[str, Any] = field(default_factory=dict)
+    description: str = ""
+
+
+@dataclass(frozen=True)
+class CheckDataset:
+    """Data checks run on: a dataset of the module, its options, its battery of variants, step controls.
+
+    ``variants``: the battery (``variants = K`` in tasks.toml: K draws of the same options;
+    ``variants = [{option = value, description = "..."}, ...]``: one variant per table, its options
+    over ``options``, to build data that exercises a rule). Every check on the dataset runs on every
+    variant and passes only if it passes on all. Variant k's seed is derived from the grading run's
+    assignment seed, the dataset's name and k (:func:`lab.lessons.grader.draw_seeds`); ``seed``
+    pins it instead: an instructor's integer, or ``"env:NAME"`` (read at grading). ``params``:
+    controls of the pipeline's steps, by step.
     """
 
     name: str
     dataset: str
     options: dict[str, Any] = field(default_factory=dict)
-    seed: int | str = "fresh"
+    seed: int | str | None = None
     description: str = ""
     params: dict[str, dict[str, Any]] = field(default_factory=dict)
+    variants: tuple[DataVariant, ...] = (DataVariant(),)
 
-    def describe(self) -> str:
+    def describe(self, variant: int = 0) -> str:
+        """How the data (of ``variant``) is described to students."""
         with_options = f" with {self.options}" if self.options else ""
-        return self.description or f"dataset {self.dataset!r}" + with_options
+        text = self.description or f"dataset {self.dataset!r}" + with_options
+        chosen = self.variants[variant]
+        if chosen.description:
+            text += f"; {chosen.description}"
+        elif chosen.options:
+            text += f"; with {chosen.options}"
+        if len(self.variants) > 1:
+            text += f" (variant {variant + 1} of {len(self.variants)})"
+        return text
+
+    def options_of(self, variant: int) -> dict[str, Any]:
+        """The dataset's options for ``variant``: its own, with the variant's over them."""
+        return {**self.options, **self.variants[variant].options}
 
 
 @dataclass(frozen=True)
@@ -410,18 +438,47 @@ def _with_signatures(lesson: Lesson) -> Lesson:
 
 def _dataset(name: str, table: Any, where: str) -> CheckDataset:
     table = _table(table, where)
-    _only(table, {"dataset", "options", "seed", "description", "params"}, where)
-    seed = table.get("seed", "fresh")
+    _only(table, {"dataset", "options", "seed", "description", "params", "variants"}, where)
+    seed = table.get("seed")
     from_env = isinstance(seed, str) and seed.startswith("env:") and len(seed) > 4
-    if isinstance(seed, bool) or not (isinstance(seed, int) or seed == "fresh" or from_env):
-        raise LessonFormatError(f"{where}.seed", f'must be "fresh", an integer or "env:NAME", got {seed!r}')
+    if seed == "fresh":
+        raise LessonFormatError(f"{where}.seed", 'seed = "fresh" is gone: check data is drawn from the '
+                                                 "assignment's secret seed (fresh data is a practice run); "
+                                                 "remove the key, or pin an integer")
+    if seed is not None and (isinstance(seed, bool) or not (isinstance(seed, int) or from_env)):
+        raise LessonFormatError(f"{where}.seed", f'must be an integer or "env:NAME", got {seed!r}')
     params = _table(table.get("params", {}), f"{where}.params")
     for step, controls in params.items():
         _table(controls, f"{where}.params.{step}")
     return CheckDataset(name=name, dataset=_string(table.get("dataset"), f"{where}.dataset"),
                         options=dict(_table(table.get("options", {}), f"{where}.options")), seed=seed,
                         description=str(table.get("description", "")),
-                        params={k: dict(v) for k, v in params.items()})
+                        params={k: dict(v) for k, v in params.items()},
+                        variants=_variants(table.get("variants", 1), f"{where}.variants"))
+
+
+#: Most variants a check dataset may have (each check runs on every one).
+MAX_VARIANTS = 32
+
+
+def _variants(value: Any, where: str) -> tuple[DataVariant, ...]:
+    """``variants = K`` (K draws of the dataset's options) or a list of tables (options over the dataset's,
+    and an optional ``description``)."""
+    if isinstance(value, int) and not isinstance(value, bool):
+        if not 1 <= value <= MAX_VARIANTS:
+            raise LessonFormatError(where, f"must be from 1 to {MAX_VARIANTS}, got {value}")
+        return (DataVariant(),) * value
+    if not isinstance(value, list) or not value or len(value) > MAX_VARIANTS:
+        raise LessonFormatError(where, f"must be a number of variants or a list of 1 to {MAX_VARIANTS} "
+                                       f"tables of options, got {value!r}")
+    variants = []
+    for i, entry in enumerate(value):
+        entry = dict(_table(entry, f"{where}[{i}]"))
+        description = entry.pop("description", "")
+        if not isinstance(description, str):
+            raise LessonFormatError(f"{where}[{i}].description", f"must be a string, got {description!r}")
+        variants.append(DataVariant(options=entry, description=description))
+    return tuple(variants)
 
 
 def _hint_table(table: Any, where: str) -> dict[str, HintRule]:
@@ -722,14 +779,17 @@ def _validate_datasets(lesson: Lesson, pipeline: Pipeline, where: str) -> None:
     for name, data in lesson.datasets.items():
         spec = _known(pipeline.dataset, data.dataset, f"{where}: datasets.{name}.dataset")
         option_names = {o.name for o in spec.options}
-        for key in data.options:
+        keys = [(f"options.{key}", key) for key in data.options]
+        keys += [(f"variants[{i}].{key}", key) for i, v in enumerate(data.variants) for key in v.options]
+        for at, key in keys:
+            if key == "seed":
+                raise LessonFormatError(f"{where}: datasets.{name}.{at}",
+                                        "a variant's seed is derived from the assignment seed: pin one as "
+                                        "datasets.NAME.seed")
             if key not in option_names:
-                raise LessonFormatError(f"{where}: datasets.{name}.options.{key}",
+                raise LessonFormatError(f"{where}: datasets.{name}.{at}",
                                         f"dataset {data.dataset!r} has no such option; options are "
                                         f"{sorted(option_names)}")
-        if "seed" in data.options:
-            raise LessonFormatError(f"{where}: datasets.{name}.options.seed",
-                                    "give the seed as datasets.NAME.seed")
         for step, controls in data.params.items():
             at = f"{where}: datasets.{name}.params.{step}"
             step_spec = _known(pipeline.step, step, at)

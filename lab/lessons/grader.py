@@ -27,8 +27,10 @@ score full marks.
 
 from __future__ import annotations
 
+import inspect
 import logging
 import os
+import re
 import secrets
 import time
 import zlib
@@ -43,6 +45,8 @@ from lab.core.pipeline import Pipeline, RunRecord, Session, StepParams, open_ses
 from lab.core.step import StepSpec
 from lab.lessons import checks as checks_module
 from lab.lessons import isolation
+from lab.lessons import mutants as mutants_module
+from lab.lessons.checks import Hint
 from lab.lessons.format import Check, CheckDataset, Lesson, Limits, Task, parameters_of_spec
 from lab.lessons.sandbox import CallResult, Sandbox, SubmissionFailure
 
@@ -66,10 +70,12 @@ class TestResult:
     output: str
     visibility: str = "visible"
     task: str = ""
+    hints: tuple[str, ...] = ()  # the names of the hints given, in order
 
     def to_json(self) -> dict[str, Any]:
         return {"name": self.name, "score": round(self.score, 6), "max_score": self.max_score,
-                "status": self.status, "output": self.output, "visibility": self.visibility}
+                "status": self.status, "output": self.output, "visibility": self.visibility,
+                "extra_data": {"task": self.task, "hints": list(self.hints)}}
 
 
 @dataclass
@@ -80,8 +86,9 @@ class GradeReport:
     tests: list[TestResult]
     execution_time: float
     output: str
-    seeds: dict[str, int] = field(default_factory=dict)
+    seeds: dict[str, list[int]] = field(default_factory=dict)
     reference: bool = False
+    practice: bool = False
 
     @property
     def score(self) -> float:
@@ -97,36 +104,47 @@ class GradeReport:
         return {"score": round(self.score, 6), "execution_time": round(self.execution_time, 3),
                 "output": self.output, "tests": [t.to_json() for t in self.tests],
                 "extra_data": {"lesson": self.lesson, "max_score": self.max_score, "seeds": self.seeds,
-                               "reference": self.reference}}
+                               "reference": self.reference, "practice": self.practice}}
 
 
 # --- seeds ----------------------------------------------------------------------------------------
-def derived_seed(seed: int, name: str, attempt: int = 0) -> int:
-    """The seed of check dataset ``name`` under ``--seed``: fixed per (seed, name, attempt), 31 bits."""
-    words = [int(seed) & 0xFFFFFFFF, zlib.crc32(name.encode())] + ([attempt] if attempt else [])
+def derived_seed(seed: int, name: str, attempt: int = 0, variant: int = 0) -> int:
+    """The seed of variant ``variant`` of check dataset ``name`` under assignment seed ``seed``: fixed per
+    (seed, name, variant, attempt), 31 bits."""
+    words = [int(seed) & 0xFFFFFFFF, zlib.crc32(name.encode())]
+    if attempt or variant:
+        words.append(attempt)
+    if variant:
+        words.append(variant)
     return int(np.random.SeedSequence(words).generate_state(1)[0] & 0x7FFFFFFF)
 
 
-def reseeder(lesson: Lesson, name: str, seed: int | None) -> Callable[[int], int] | None:
-    """How to draw another seed when a dataset cannot be made with the first (fresh or --seed only)."""
+def reseeder(lesson: Lesson, name: str, seed: int | None,
+             variant: int = 0) -> Callable[[int], int] | None:
+    """How to draw another seed when a dataset cannot be made with the first (never for a pinned seed)."""
+    if lesson.datasets[name].seed is not None:
+        return None  # an instructor's seed is used as given
     if seed is not None:
-        return lambda attempt: derived_seed(seed, name, attempt)
-    if lesson.datasets[name].seed == "fresh":
-        return lambda attempt: secrets.randbits(31)
-    return None  # an instructor's seed is used as given
+        return lambda attempt: derived_seed(seed, name, attempt, variant)
+    return lambda attempt: secrets.randbits(31)
 
 
 def draw_seeds(lesson: Lesson, seed: int | None = None, *,
-               environ: Mapping[str, str] | None = None) -> dict[str, int]:
-    """One seed per check dataset: from ``--seed`` (derived per dataset), the lesson, the environment or
-    :mod:`secrets`."""
+               environ: Mapping[str, str] | None = None) -> dict[str, list[int]]:
+    """The seed of every variant of every check dataset.
+
+    A dataset's pinned seed (``seed = 1234`` or ``"env:NAME"`` in tasks.toml) gives its first variant
+    that seed and derives the others from it; else every variant's seed is derived from the assignment
+    seed ``seed``, so a regrade sees the same data; with no assignment seed (a practice run) each is
+    drawn with :mod:`secrets`.
+    """
     variables: Mapping[str, str] = os.environ if environ is None else environ
-    seeds = {}
+    seeds: dict[str, list[int]] = {}
     for name, data in lesson.datasets.items():
-        if seed is not None:
-            seeds[name] = derived_seed(seed, name)
-        elif isinstance(data.seed, int):
-            seeds[name] = data.seed
+        count = len(data.variants)
+        pinned: int | None = None
+        if isinstance(data.seed, int):
+            pinned = data.seed
         elif isinstance(data.seed, str) and data.seed.startswith("env:"):
             variable = data.seed[4:]
             text = variables.get(variable)
@@ -134,9 +152,13 @@ def draw_seeds(lesson: Lesson, seed: int | None = None, *,
                 why = "not set" if text is None else "not an integer"
                 raise LabError(f"datasets.{name}.seed",
                                f"the instructor's seed is read from ${variable}, which is {why}")
-            seeds[name] = int(text)
+            pinned = int(text)
+        if pinned is not None:
+            seeds[name] = [pinned] + [derived_seed(pinned, name, variant=k) for k in range(1, count)]
+        elif seed is not None:
+            seeds[name] = [derived_seed(seed, name, variant=k) for k in range(count)]
         else:
-            seeds[name] = secrets.randbits(31)
+            seeds[name] = [secrets.randbits(31) for _ in range(count)]
     return seeds
 
 
@@ -242,9 +264,10 @@ class DataRun:
     ATTEMPTS = 5
 
     def __init__(self, pipeline: Pipeline, data: CheckDataset, seed: int,
-                 reseed: Callable[[int], int] | None = None) -> None:
+                 reseed: Callable[[int], int] | None = None, *, variant: int = 0) -> None:
         self.pipeline = pipeline
         self.data = data
+        self.variant = variant
         self.seed = seed
         self.reseed = reseed
         self.error = ""
@@ -288,7 +311,7 @@ class DataRun:
         for attempt in range(attempts):
             if attempt:
                 self.seed = self.reseed(attempt)  # type: ignore[misc]
-            options = dict(self.data.options, **({"seed": self.seed} if takes_seed else {}))
+            options = dict(self.data.options_of(self.variant), **({"seed": self.seed} if takes_seed else {}))
             try:
                 return open_session(self.pipeline, self.data.dataset, options, seed=self.seed)
             except LabError as exc:
@@ -302,15 +325,21 @@ class DataRun:
 class Grader:
     """One grading run of one submission (see the module docstring)."""
 
-    def __init__(self, lesson: Lesson, submission: Submission, *, seeds: dict[str, int], limits: Limits,
-                 reference: bool = False, seed: int | None = None) -> None:
+    def __init__(self, lesson: Lesson, submission: Submission, *, seeds: dict[str, list[int]], limits: Limits,
+                 reference: bool = False, seed: int | None = None,
+                 variant_order: Callable[[int], list[int]] | None = None) -> None:
         self.lesson = lesson
         self.pipeline = lesson.pipeline
         self.submission = submission
         self.limits = limits
         self.reference = reference
-        self.data = {name: DataRun(self.pipeline, data, seeds[name], reseeder(lesson, name, seed))
+        self.practice = seed is None
+        self.data = {name: [DataRun(self.pipeline, data, variant_seed, reseeder(lesson, name, seed, k),
+                                    variant=k) for k, variant_seed in enumerate(seeds[name])]
                      for name, data in lesson.datasets.items()}
+        self.alternatives: dict[str, Callable[..., Any]] = {}  # extra alternatives by name (mutation tests)
+        # the order the variants of a dataset are graded in (tests: the grade must not depend on it)
+        self.variant_order = variant_order or (lambda count: list(range(count)))
         self.reference_runs: dict[tuple, StepRun] = {}
         self.student_runs: dict[tuple, StepRun] = {}
         self.broken: dict[str, str] = {}  # task -> why its function is not called again
@@ -331,12 +360,13 @@ class Grader:
             self.submission.close()
         elapsed = time.monotonic() - self.started
         return GradeReport(lesson=self.lesson.id, tests=tests, execution_time=elapsed,
-                           output=self._summary(tests, elapsed), seeds=self.seeds, reference=self.reference)
+                           output=self._summary(tests, elapsed), seeds=self.seeds, reference=self.reference,
+                           practice=self.practice)
 
     @property
-    def seeds(self) -> dict[str, int]:
-        """The seed each dataset was made with (after any retries)."""
-        return {name: run.seed for name, run in self.data.items()}
+    def seeds(self) -> dict[str, list[int]]:
+        """The seed each variant of each dataset was made with (after any retries)."""
+        return {name: [run.seed for run in runs] for name, runs in self.data.items()}
 
     def _summary(self, tests: list[TestResult], elapsed: float) -> str:
         score, top = sum(t.score for t in tests), sum(t.max_score for t in tests)
@@ -345,6 +375,9 @@ class Grader:
                  f"in {elapsed:.1f} s."]
         if self.reference:
             lines.append("Graded the lab's own reference implementation.")
+        if self.practice:
+            lines.append("Practice run: fresh data, not the assignment's (a grade uses the assignment's "
+                         "seed).")
         if self.load_failure is not None:
             lines.append(_failure_text(self.load_failure, "your file", self.limits))
         printed = self.submission.printed_outside_calls()
@@ -355,26 +388,38 @@ class Grader:
 
     # --- one check ------------------------------------------------------------------------------------
     def _grade_check(self, task: Task, check: Check, problem: str | None) -> TestResult:
+        """One test: the check run on every variant of its dataset (in :attr:`variant_order`), passed only
+        if it passes on all; the message lists the variants that failed, in their order."""
         test = TestResult(name=f"{task.title}: {check.name}", score=0.0, max_score=check.points,
                           status="failed", output="", visibility=check.visibility, task=task.name)
-        header = f"Check: {check.name}\nData: {self.lesson.datasets[check.dataset].describe()}"
+        data = self.lesson.datasets[check.dataset]
+        count = len(data.variants)
+        bodies: dict[int, tuple[str, bool]] = {}
+        for variant in self.variant_order(count):
+            bodies[variant] = self._variant_body(task, check, problem, variant)
+        passed = all(ok for _, ok in bodies.values())
+        header = f"Check: {check.name}"
+        if count == 1:
+            header += f"\nData: {data.describe(0)}"
         if check.params:
             header += f"\nControls of {task.step}: {_format_params(check.params)}"
-        try:
-            body, passed = self._check_body(task, check, problem)
-        except LabError as exc:  # the lesson's own data or reference failed: say so, never crash
-            body, passed = f"Not graded: {exc.reason}", False
-        except Exception as exc:  # a bug in the lab: the other checks still run, the student is told
-            log.exception("grading check %r of %s failed", check.name, self.lesson.id)
-            body = (f"Not graded: the grader itself failed on this check ({type(exc).__name__}: {exc}); "
-                    "this is a bug in the lab, not in your code: tell your instructor")
-            passed = False
         if passed:
             test.score, test.status = check.points, "passed"
-        test.output = _truncate(f"{header}\n{body}", MAX_TEST_OUTPUT)
+        test.output = _truncate(f"{header}\n{_variants_text(data, bodies)}", MAX_TEST_OUTPUT)
+        test.hints = tuple(dict.fromkeys(name for body, _ in bodies.values() for name in _hint_names(body)))
         return test
 
-    def _check_body(self, task: Task, check: Check, problem: str | None) -> tuple[str, bool]:
+    def _variant_body(self, task: Task, check: Check, problem: str | None, variant: int) -> tuple[str, bool]:
+        try:
+            return self._check_body(task, check, problem, variant)
+        except LabError as exc:  # the lesson's own data or reference failed: say so, never crash
+            return f"Not graded: {exc.reason}", False
+        except Exception as exc:  # a bug in the lab: the other checks still run, the student is told
+            log.exception("grading check %r of %s failed", check.name, self.lesson.id)
+            return (f"Not graded: the grader itself failed on this check ({type(exc).__name__}: {exc}); "
+                    "this is a bug in the lab, not in your code: tell your instructor"), False
+
+    def _check_body(self, task: Task, check: Check, problem: str | None, variant: int) -> tuple[str, bool]:
         if self.load_failure is not None:
             return _failure_text(self.load_failure, "your file", self.limits), False
         if problem:
@@ -384,12 +429,13 @@ class Grader:
         if time.monotonic() >= self.deadline:
             return (f"Not run: grading stopped after its time limit of {self.limits.total_timeout_s:g} s "
                     "(earlier calls of your code took that long)"), False
-        params = {**self.data[check.dataset].params(task.step), **check.params}
-        reference = self._step_run(task, check.dataset, params, student=False)
+        params = {**self.data[check.dataset][variant].params(task.step), **check.params}
+        where = (check.dataset, variant)
+        reference = self._step_run(task, where, params, student=False)
         if reference.error:
             raise LabError("reference", f"the reference {task.step} failed on the check data "
                                         f"({reference.error}); this is a problem of the lesson")
-        student = self._step_run(task, check.dataset, params, student=True)
+        student = self._step_run(task, where, params, student=True)
         printed = (f"\nWhat your code printed:\n{_truncate(student.printed, 2000)}" if student.printed.strip()
                    else "")
         if student.failure is not None or student.error:
@@ -401,11 +447,11 @@ class Grader:
                     f"{self.limits.output_kb:g} KB a call may print: remove your debugging "
                     f"prints.{printed}"), False
         check_stage = self._output_body if check.stage == "output" else self._pipeline_body
-        body, passed = check_stage(task, check, student, reference, params)
+        body, passed = check_stage(task, check, student, reference, params, where)
         return body + printed, passed
 
     def _output_body(self, task: Task, check: Check, student: StepRun, reference: StepRun,
-                     params: dict[str, Any]) -> tuple[str, bool]:
+                     params: dict[str, Any], where: tuple[str, int]) -> tuple[str, bool]:
         """Stage ``output``: the step's value against the reference's on the same inputs."""
         value_name = check.value or self.pipeline.step(task.step).writes[0]
         got, expected = self._values(student, reference, value_name, "your")
@@ -413,13 +459,15 @@ class Grader:
             return got, False
         problem = checks_module.structure_problem(got, expected, what=f"{task.step}'s {value_name}")
         if problem:
-            return f"Your function returned a value of the wrong form: {problem}.", False
+            return (f"Your function returned a value of the wrong form: {problem}."
+                    + _structure_hint(got, expected)), False
         outcome = self._compare(check, got, expected)
-        hints = [] if outcome.passed else self._hints(task, check, student, reference, params, got, expected)
+        hints = [] if outcome.passed else self._hints(task, check, student, reference, params, got, expected,
+                                                      where)
         return _outcome_text(outcome, f"{value_name}", hints), outcome.passed
 
     def _pipeline_body(self, task: Task, check: Check, student: StepRun, reference: StepRun,
-                       params: dict[str, Any]) -> tuple[str, bool]:
+                       params: dict[str, Any], where: tuple[str, int]) -> tuple[str, bool]:
         """Stage ``pipeline``: what ``until`` needs run on the student's output; a metric or value
         compared."""
         first = self.pipeline.step(task.step).writes[0]
@@ -427,20 +475,26 @@ class Grader:
         problem = checks_module.structure_problem(got_out, expected_out, what=f"{task.step}'s {first}")
         if problem:
             return ("The rest of the pipeline was not run: your function returned a value of the wrong "
-                    f"form: {problem}."), False
+                    f"form: {problem}." + _structure_hint(got_out, expected_out)), False
         until = check.until or self.pipeline.steps[-1].name
         student_after = self._downstream(student, until)
         if isinstance(student_after, str):
-            hints = self._hints(task, check, student, reference, params, got_out, expected_out)
+            hints = self._hints(task, check, student, reference, params, got_out, expected_out, where)
             return (f"The rest of the pipeline failed on your output: {student_after}"
-                    + "".join(f"\nHint: {h}" for h in hints)), False
+                    + _hints_text(hints)), False
         reference_after = self._downstream(reference, until)
         if isinstance(reference_after, str):
             raise LabError("reference", f"the reference pipeline failed after {task.step}: {reference_after}")
         if check.metric is not None:
             got, expected = student_after.metric(check.metric), reference_after.metric(check.metric)
-            if got is None or expected is None:
+            if expected is None:
                 raise LabError("metric", f"no step up to {until!r} reports metric {check.metric!r}")
+            if got is None:  # measured on the reference's output, not on the student's: say what in theirs
+                hints = self._hints(task, check, student, reference, params, got_out, expected_out, where)
+                warned = [w for record in student_after.records for w in record.warnings]
+                why = f": {'; '.join(dict.fromkeys(warned))}" if warned else ""
+                return (f"Failed: the lab's steps up to {until} could not measure {check.metric} on your "
+                        f"{first}{why}" + _hints_text(hints)), False
             what = f"metric {check.metric} after running the pipeline to {until} on your {first}"
         else:
             got, expected = self._values(_as_run(student_after.session), _as_run(reference_after.session),
@@ -453,7 +507,7 @@ class Grader:
             what = f"{check.value} after running the pipeline to {until} on your {first}"
         outcome = self._compare(check, got, expected)
         hints = ([] if outcome.passed
-                 else self._hints(task, check, student, reference, params, got_out, expected_out))
+                 else self._hints(task, check, student, reference, params, got_out, expected_out, where))
         return _outcome_text(outcome, what, hints), outcome.passed
 
     def _compare(self, check: Check, got: Any, expected: Any) -> checks_module.Outcome:
@@ -481,20 +535,20 @@ class Grader:
         return got, expected
 
     # --- running steps ----------------------------------------------------------------------------------
-    def _step_run(self, task: Task, dataset: str, params: dict[str, Any], *, student: bool,
+    def _step_run(self, task: Task, where: tuple[str, int], params: dict[str, Any], *, student: bool,
                   mistake: str | None = None) -> StepRun:
-        """Run the task's step on ``dataset``: the student's code, the reference, or (``mistake``) a function
-        of the lesson's ``mistakes.py``, on a fork of the dataset's reference run."""
-        key = (task.step, dataset, _freeze(params), mistake)
+        """Run the task's step on variant ``where = (dataset, k)``: the student's code, the reference, or
+        (``mistake``) a function of the lesson's ``mistakes.py``, on a fork of the variant's reference run."""
+        key = (task.step, where, _freeze(params), mistake)
         cache = self.student_runs if student else self.reference_runs
         if key in cache:
             return cache[key]
-        data = self.data[dataset]
+        data = self.data[where[0]][where[1]]
         session = data.reference(task.step).fork()
         spec = self.pipeline.step(task.step)
         run = StepRun(step=task.step, session=session, params=data.controls(task.step, params))
         proxy = _Proxy(self, task, spec) if student else None
-        override = proxy or (self.lesson.mistakes[mistake] if mistake else None)
+        override = proxy or (self._alternative_function(spec, mistake) if mistake else None)
         try:
             records = session.run_plan(session.plan(task.step, run.params), run.params,
                                        overrides={task.step: override} if override else None)
@@ -517,6 +571,18 @@ class Grader:
         cache[key] = run
         return run
 
+    def _alternative_function(self, spec: StepSpec, name: str) -> Callable[..., Any]:
+        """A function of the lesson's ``mistakes.py``, a generic mutant of the step by its name, or one the
+        grader was given (:attr:`alternatives`: mutation testing)."""
+        if name in self.alternatives:
+            return self.alternatives[name]
+        if name in self.lesson.mistakes:
+            return self.lesson.mistakes[name]
+        for mutant in mutants_module.generic_mutants(spec.func):
+            if mutant.name == name:
+                return mutant(spec.func)
+        raise LabError("hint", f"no mistake or mutant {name!r}")
+
     def _downstream(self, run: StepRun, until: str) -> AfterRun | str:
         """A fork of ``run``'s session brought up to date to ``until`` (the plan of what ``until`` needs,
         which re-runs what reads the step's output), or why a step of that plan failed."""
@@ -535,23 +601,69 @@ class Grader:
         run.downstream[until] = result
         return result
 
-    # --- hints --------------------------------------------------------------------------------------------
+    # --- hints ------------------------------------------------------------------------------------------
     def _hints(self, task: Task, check: Check, student: StepRun, reference: StepRun, params: dict[str, Any],
-               got: Any, expected: Any) -> list[str]:
-        found: list[str] = []
+               got: Any, expected: Any, where: tuple[str, int]) -> list[Hint]:
+        """What a failed check says about the cause, tried in tiers: the check's own hints (every one that
+        fires), else the lesson's ``mistakes.py`` for the step, else the generic detectors and mutants
+        (:func:`_generic_hints`; the first that fires). An alternative computation names the mistake only
+        when the student's value matches it and the reference's does not."""
+        first = self.pipeline.step(task.step).writes[0]
         if check.stage != "output":
-            first = self.pipeline.step(task.step).writes[0]
             got, expected = student.outputs.get(first), reference.outputs.get(first)
         try:
             got_array, expected_array = checks_module.as_compared(got), checks_module.as_compared(expected)
         except (TypeError, ValueError):
-            return found
+            return []
         if got_array.shape != expected_array.shape:
+            return []
+        matches = self._matcher(check, got_array, expected_array)
+        found = self._named_hints(task, check, params, where, got_array, expected_array, matches)
+        if found:
             return found
+        named = {rule.options.get("mistake") for rule in check.hints if rule.when == "same_as_mistake"}
+        for name in self.lesson.mistakes:
+            if name in named or not _takes_parameters_of(self.lesson.mistakes[name],
+                                                         self.pipeline.step(task.step)):
+                continue
+            alternative = self._alternative_value(task, where, params, name)
+            if alternative is not None and matches(alternative):
+                found.append(checks_module.Hint(name, self._mistake_text(name)))
+        if found:
+            return found
+        return self._generic_hints(task, where, params, got, expected, got_array, expected_array, matches)
+
+    def _matcher(self, check: Check, got: np.ndarray, expected: np.ndarray) -> Callable[[Any], bool]:
+        """``matches(alternative)``: the student's value equals the alternative (by the check's comparison at
+        stage output, else closely) and the reference's does not."""
+        if check.stage == "output":
+            compare, options = checks_module.COMPARISONS[check.compare], dict(check.options)
+        else:
+            scale = float(np.abs(expected).max()) if expected.size else 1.0
+            compare, options = checks_module.allclose, {"rtol": 1e-6, "atol": 1e-9 * max(scale, 1e-300)}
+
+        def same(a: np.ndarray, b: np.ndarray) -> bool:
+            try:
+                return a.shape == b.shape and compare(a, b, **options).passed
+            except (TypeError, ValueError, np.linalg.LinAlgError):
+                return False
+
+        def matches(alternative: Any) -> bool:
+            try:
+                alt = checks_module.as_compared(alternative)
+            except (TypeError, ValueError):
+                return False
+            return same(got, alt) and not same(expected, alt)
+        return matches
+
+    def _named_hints(self, task: Task, check: Check, params: dict[str, Any], where: tuple[str, int],
+                     got_array: np.ndarray, expected_array: np.ndarray,
+                     matches: Callable[[Any], bool]) -> list[Hint]:
+        found: list[Hint] = []
         for rule in check.hints:
             options = dict(rule.options)
             if rule.when in ("same_as_reference_with", "same_as_mistake"):
-                alternative = self._step_run(task, check.dataset, {**params, **options.get("params", {})},
+                alternative = self._step_run(task, where, {**params, **options.get("params", {})},
                                              student=False, mistake=options.get("mistake"))
                 first = self.pipeline.step(task.step).writes[0]
                 if alternative.error or first not in alternative.outputs:
@@ -565,8 +677,10 @@ class Grader:
                 else:
                     compare, compare_options = checks_module.equal_up_to_scale, {}
                 try:
-                    outcome = compare(got_array, checks_module.as_compared(alternative.outputs[first]),
-                                      **compare_options)
+                    alt = checks_module.as_compared(alternative.outputs[first])
+                    outcome = compare(got_array, alt, **compare_options)
+                    if outcome.passed and compare(expected_array, alt, **compare_options).passed:
+                        continue  # the reference matches it too: it names nothing
                 except (TypeError, ValueError):
                     continue
                 which = ({"mistake": options["mistake"]} if rule.when == "same_as_mistake"
@@ -574,8 +688,55 @@ class Grader:
                 options = {"outcome": outcome, **which}
             message = checks_module.detect(rule.when, got_array, expected_array, options)
             if message:
-                found.append(rule.say or message)
+                found.append(checks_module.Hint(rule.name, rule.say or message))
         return found
+
+    def _mistake_text(self, name: str) -> str:
+        """A mistake's hint: the ``say`` of a lesson hint that names it, else its docstring's first line."""
+        for rule in self.lesson.hints.values():
+            if rule.when == "same_as_mistake" and rule.options.get("mistake") == name and rule.say:
+                return rule.say
+        doc = inspect.getdoc(self.lesson.mistakes[name]) or ""
+        return (doc.split("\n\n")[0].replace("\n", " ")
+                or f"your result is what the known mistake {name!r} computes")
+
+    def _generic_hints(self, task: Task, where: tuple[str, int], params: dict[str, Any], got: Any,
+                       expected: Any, got_array: np.ndarray, expected_array: np.ndarray,
+                       matches: Callable[[Any], bool]) -> list[Hint]:
+        """The first generic detector that fires: a float32 result, a reflection, then the output
+        transforms and changed inputs of :mod:`lab.lessons.mutants` (NumPy-patching mutants are left to
+        ``vision-lab lesson validate``: they would touch other gradings running in this process)."""
+        raw_got, raw_expected = _primary_or_self(got), _primary_or_self(expected)
+        message = checks_module.float32_rounding(raw_got, raw_expected)
+        if message:
+            return [checks_module.Hint("float32", message)]
+        for name in ("reflection", "transposed", "inverse", "negated", "scaled", "permuted"):
+            message = checks_module.detect(name, got_array, expected_array, {})
+            if message and (name != "scaled" or not matches(expected_array * 2.0)):
+                return [checks_module.Hint(name, message)]
+        spec = self.pipeline.step(task.step)
+        for mutant in mutants_module.generic_mutants(spec.func):
+            if mutant.kind == "patch" or mutant.name in _DETECTED_DIRECTLY:
+                continue
+            if mutant.kind == "output":
+                try:
+                    array, _ = mutants_module.primary_array(expected)
+                    alternative: Any = mutants_module.transform(mutant.name, array)
+                except mutants_module.NotApplicable:
+                    continue
+            else:
+                alternative = self._alternative_value(task, where, params, mutant.name)
+            if alternative is not None and matches(alternative):
+                return [checks_module.Hint(mutant.name, mutant.hint)]
+        return []
+
+    def _alternative_value(self, task: Task, where: tuple[str, int], params: dict[str, Any],
+                           name: str) -> Any:
+        """The task step's first output computed by alternative ``name`` (a function of mistakes.py or a
+        generic mutant) on the check's inputs, or None where it does not apply or fails."""
+        run = self._step_run(task, where, params, student=False, mistake=name)
+        first = self.pipeline.step(task.step).writes[0]
+        return None if run.error or first not in run.outputs else run.outputs[first]
 
     def _signature_problem(self, task: Task) -> str | None:
         functions = self.submission.functions()
@@ -673,11 +834,50 @@ def _nan_hint(reason: str) -> str:
     return ""
 
 
-def _outcome_text(outcome: checks_module.Outcome, what: str, hints: list[str]) -> str:
-    text = f"{'Passed' if outcome.passed else 'Failed'}: {what}: {outcome.message()}"
-    for hint in dict.fromkeys(hints):
-        text += f"\nHint: {hint}"
-    return text
+def _outcome_text(outcome: checks_module.Outcome, what: str, hints: list[Hint]) -> str:
+    return f"{'Passed' if outcome.passed else 'Failed'}: {what}: {outcome.message()}" + _hints_text(hints)
+
+
+def _hints_text(hints: list[Hint]) -> str:
+    """``Hint: <text> [<name>]`` lines, each text once."""
+    seen: dict[str, str] = {}
+    for hint in hints:
+        seen.setdefault(hint.text, hint.name)
+    return "".join(f"\nHint: {text} [{name}]" for text, name in seen.items())
+
+
+_HINT_LINE = re.compile(r"^Hint: .* \[([^\]]+)\]$", re.M)
+
+
+def _structure_hint(got: Any, expected: Any) -> str:
+    hint = checks_module.structure_hint(got, expected)
+    return _hints_text([hint]) if hint else ""
+
+
+def _hint_names(body: str) -> list[str]:
+    """The names of the hints a message gives (its ``Hint: ... [name]`` lines)."""
+    return _HINT_LINE.findall(body)
+
+
+def _variants_text(data: CheckDataset, bodies: dict[int, tuple[str, bool]]) -> str:
+    """What a check found on the variants of its data: the one body when there is one variant; else whether
+    all passed, or each failing variant (described) with its message, the same message written once."""
+    if len(bodies) == 1:
+        return next(iter(bodies.values()))[0]
+    count = len(bodies)
+    failing = [k for k in sorted(bodies) if not bodies[k][1]]
+    if not failing:
+        return f"Passed on all {count} variants of the data.\n{bodies[0][0]}"
+    lines = [f"Failed on {len(failing)} of the {count} variants of the data "
+             f"(variant{'s' if len(failing) > 1 else ''} {', '.join(str(k + 1) for k in failing)})."]
+    by_body: dict[str, list[int]] = {}
+    for k in failing:
+        by_body.setdefault(bodies[k][0], []).append(k)
+    for body, variants in by_body.items():
+        which = ", ".join(str(k + 1) for k in variants)
+        plural = "s" if len(variants) > 1 else ""
+        lines.append(f"Variant{plural} {which}: {data.describe(variants[0])}\n{body}")
+    return "\n".join(lines)
 
 
 def _format_params(params: dict[str, Any]) -> str:
@@ -688,6 +888,27 @@ def _truncate(text: str, limit: int) -> str:
     if len(text) <= limit:
         return text
     return text[:limit] + f"\n... ({len(text) - limit} more characters not shown)"
+
+
+#: Output mutants the generic hints recognise with a detector of their own (any scale, any order).
+_DETECTED_DIRECTLY = ("transposed", "inverse", "negated", "scaled", "reversed", "float32")
+
+
+def _primary_or_self(value: Any) -> Any:
+    """A typed value's first array (what the checks compare), else the value."""
+    try:
+        return mutants_module.primary_array(value)[0]
+    except mutants_module.NotApplicable:
+        return value
+
+
+def _takes_parameters_of(function: Callable[..., Any], spec: StepSpec) -> bool:
+    """Whether a function of mistakes.py has the step's parameters (it is a mistake of that task)."""
+    try:
+        parameters = list(inspect.signature(function).parameters)
+    except (TypeError, ValueError):
+        return False
+    return parameters == list(inspect.signature(spec.func).parameters)
 
 
 def _freeze(value: Any) -> Any:
@@ -704,16 +925,26 @@ def _as_run(session: Session) -> StepRun:
 
 # --- entry points -------------------------------------------------------------------------------------------
 def grade(lesson: Lesson, source: str | None = None, *, reference: bool = False, seed: int | None = None,
-          limits: Limits | None = None) -> GradeReport:
-    """Grade ``source`` (a student's file) or, with ``reference``, the lab's own steps."""
+          practice: bool = False, limits: Limits | None = None,
+          variant_order: Callable[[int], list[int]] | None = None) -> GradeReport:
+    """Grade ``source`` (a student's file) or, with ``reference``, the lab's own steps.
+
+    ``seed`` is the assignment's secret seed: the check data (every variant of every dataset) is
+    derived from it, so a regrade gives the same score and messages. Without one the run is a
+    practice run (``practice=True`` says so explicitly): fresh data, labelled as such in the report.
+    ``variant_order`` (tests) changes the order the variants are graded in, which must not matter.
+    """
     if not reference and source is None:
         raise LabError("submission", "give the submission's source, or grade the reference")
+    if practice and seed is not None:
+        raise LabError("seed", "a practice run draws fresh data: give no assignment seed")
     if not reference:
         isolation.check(isolation.default_isolation())  # SandboxUnavailable (HTTP 503, CLI exit 2), not a 0
     limits = limits or lesson.limits
     seeds = draw_seeds(lesson, seed)
     submission: Submission = ReferenceSubmission() if reference else SandboxedSubmission(source or "", limits)
-    return Grader(lesson, submission, seeds=seeds, limits=limits, reference=reference, seed=seed).run()
+    return Grader(lesson, submission, seeds=seeds, limits=limits, reference=reference, seed=seed,
+                  variant_order=variant_order).run()
 
 
 __all__ = [

@@ -39,7 +39,7 @@ def test_toy_lesson_loads_with_its_tasks_checks_and_points(toy_lesson):
     assert toy_lesson.title == "Toy lesson: noise and means"  # the first heading of lesson.md
     assert [t.step for t in toy_lesson.tasks] == ["make_noisy", "mean_intensity"]
     assert toy_lesson.points == 6.0
-    assert toy_lesson.datasets["secret"].seed == 1234 and toy_lesson.datasets["small"].seed == "fresh"
+    assert toy_lesson.datasets["secret"].seed == 1234 and toy_lesson.datasets["small"].seed is None
     check = toy_lesson.task("means").checks[1]
     assert check.params == {"scale": 3} and check.options == {"rtol": 1e-6}
     assert toy_lesson.limits.call_timeout_s == 10
@@ -100,7 +100,13 @@ SCALE_HINT = '[hints.scale_ignored]\nwhen = "same_as_reference_with"\nparams = {
      "sum of its checks' points"),
     ("params = { scale = 3 }", "params = { scale = 30 }", "tasks[1].checks[1].params.scale", "at most"),
     ("params = { scale = 3 }", "params = { zoom = 3 }", "tasks[1].checks[1].params.zoom", "no control"),
-    ('seed = 1234', 'seed = "sometimes"', "datasets.secret.seed", "fresh"),
+    ('seed = 1234', 'seed = "sometimes"', "datasets.secret.seed", "an integer"),
+    ('seed = 1234', 'seed = "fresh"', "datasets.secret.seed", "practice run"),
+    ('seed = 1234', 'seed = 1234\nvariants = 0', "datasets.secret.variants", "from 1 to"),
+    ('seed = 1234', 'seed = 1234\nvariants = [{ pixels = 3 }]', "datasets.secret.variants[0].pixels",
+     "no such option"),
+    ('seed = 1234', 'seed = 1234\nvariants = [{ seed = 3 }]', "datasets.secret.variants[0].seed",
+     "derived from the assignment seed"),
     ('options = { count = 4, size = 8 }', 'options = { count = 4, pixels = 8 }',
      "datasets.secret.options.pixels", "no such option"),
     ('until = "mean_intensity"', 'until = "make_noisy"', "tasks[0].checks[1].until", "after"),

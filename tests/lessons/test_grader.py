@@ -33,6 +33,7 @@ RESULTS_SCHEMA = {
                 "status": {"enum": ["passed", "failed"]},
                 "output": {"type": "string", "minLength": 1},
                 "visibility": {"enum": ["visible", "hidden", "after_due_date", "after_published"]},
+                "extra_data": {"type": "object"},  # Gradescope keeps a test's extra_data for the instructor
             }}},
     },
 }
@@ -145,10 +146,11 @@ def test_wrong_parameters_fail_the_task_with_the_signature(toy_lesson):
 
 
 # --- seeds ------------------------------------------------------------------------------------------------
-def test_fresh_seeds_differ_between_gradings_and_the_instructor_seed_is_kept(toy_lesson):
+def test_practice_seeds_differ_between_gradings_and_the_instructor_seed_is_kept(toy_lesson):
     first, second = draw_seeds(toy_lesson), draw_seeds(toy_lesson)
-    assert first["secret"] == second["secret"] == 1234
+    assert first["secret"] == second["secret"] == [1234]
     assert first["small"] != second["small"]  # 1 chance in 2^31 of a false failure
+    assert draw_seeds(toy_lesson, 7)["secret"] == [1234]  # a pinned dataset keeps its seed under any assignment
 
 
 def test_seed_option_makes_grading_reproducible(toy_lesson):
@@ -164,7 +166,7 @@ def test_seed_from_the_environment(toy_lesson):
 
     secret = dataclasses.replace(toy_lesson.datasets["secret"], seed="env:TOY_SEED")
     lesson = dataclasses.replace(toy_lesson, datasets={**toy_lesson.datasets, "secret": secret})
-    assert draw_seeds(lesson, environ={"TOY_SEED": "99"})["secret"] == 99
+    assert draw_seeds(lesson, environ={"TOY_SEED": "99"})["secret"] == [99]
     with pytest.raises(LabError, match="TOY_SEED, which is not set"):
         draw_seeds(lesson, environ={})
 
