@@ -8,12 +8,20 @@ background.
     GET  /api/submissions/{id}            status (queued, running, done, error) and results.json (no seeds;
                                           ?view=instructor adds them, with the instructor's token)
     GET  /api/lessons/{id}/submissions    every submission of a lesson, for an instructor
+    GET  /api/lessons/{id}/assignment     the lesson's assignment seed (instructor)
+    PUT  /api/lessons/{id}/assignment     set it: {"seed": 0 .. 2**31 - 1} (instructor)
+    POST /api/lessons/{id}/regrade        requeue every graded submission of the lesson (instructor)
+    GET  /api/lessons/{id}/stats          the class's results per check and its scores (instructor)
 
 Grading never runs in a request: an upload is committed to the database and a worker of the
 :class:`~lab.lessons.service.LessonService` grades it. The service comes from
 ``app.state.lesson_service``; when the app has none, the router's lifespan builds one from the
 environment (:meth:`LessonService.from_env`) and starts it (requeueing what a killed server left
 running). Tests build an app with just this router: :func:`build_app`.
+
+Every submission is graded with the lesson's secret assignment seed (drawn on first use, stored
+with the submissions), so a regrade gives the same score; the seed and the check data's seeds
+appear only on the instructor's routes.
 """
 
 from __future__ import annotations
@@ -24,15 +32,16 @@ import os
 from collections.abc import AsyncIterator
 from typing import Annotated, Any, Literal
 
-from fastapi import APIRouter, FastAPI, File, Form, Path, Query, Request, UploadFile
+from fastapi import APIRouter, Depends, FastAPI, File, Form, Path, Query, Request, UploadFile
 from fastapi.concurrency import run_in_threadpool
 from fastapi.responses import PlainTextResponse
+from pydantic import BaseModel, BeforeValidator, ConfigDict, Field, StrictInt
 
 from lab.api.errors import LabJSONResponse, error_responses, register_error_handlers
 from lab.core.errors import LabError, UnknownName
 from lab.lessons.service import LessonService
 from lab.lessons.submission import check_upload
-from lab.lessons.store import default_database_url
+from lab.lessons.store import MAX_SEED, default_database_url
 
 
 class Forbidden(LabError):
@@ -174,12 +183,14 @@ async def submit(request: Request, lesson_id: LessonId,
                             "url": f"/api/submissions/{submission_id}"}, status_code=202)
 
 
-#: Keys of results.json's ``extra_data`` only the instructor's view shows (the check data's seeds).
-INSTRUCTOR_ONLY_EXTRA = ("seeds",)
+#: Keys of results.json's ``extra_data`` only the instructor's view shows (the check data's seeds; the
+#: assignment seed, should the grader ever write it there).
+INSTRUCTOR_ONLY_EXTRA = ("seeds", "seed", "assignment_seed")
 
 
 def student_view(submission: dict[str, Any]) -> dict[str, Any]:
-    """A submission's JSON without what stays hidden from students: ``results.extra_data.seeds``."""
+    """A submission's JSON without what stays hidden from students: ``results.extra_data.seeds`` (and
+    any other key of :data:`INSTRUCTOR_ONLY_EXTRA`)."""
     results = submission.get("results")
     if not isinstance(results, dict) or not isinstance(results.get("extra_data"), dict):
         return submission
@@ -219,6 +230,80 @@ def list_submissions(request: Request, lesson_id: LessonId) -> LabJSONResponse:
     lesson = service.catalog.get(lesson_id)
     rows: list[dict[str, Any]] = [s.to_json(with_results=False) for s in service.queue.list(lesson.id)]
     return LabJSONResponse({"lesson": lesson.id, "submissions": rows, "counts": service.queue.counts()})
+
+
+def require_instructor(request: Request) -> LessonService:
+    """A dependency of the instructor's routes: the service, after the token is checked (before the body
+    is read, so a request without the token is 403 whatever it sends)."""
+    service = get_lesson_service(request)
+    _check_instructor(request, service)
+    return service
+
+
+Instructor = Annotated[LessonService, Depends(require_instructor)]
+INSTRUCTOR_ERRORS = error_responses({403: "Instructor token missing or wrong."})
+
+
+def _json_integer(value: object) -> object:
+    """A JSON integer as JSON Schema reads it: ``5`` or ``5.0``, never ``"5"`` or ``true`` (then strict)."""
+    if isinstance(value, (bool, str)):
+        raise ValueError("an assignment seed is a JSON integer")
+    return int(value) if isinstance(value, float) and value.is_integer() else value
+
+
+class AssignmentSeed(BaseModel):
+    """A lesson's assignment seed: every hidden dataset of a grading run is derived from it."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    seed: Annotated[StrictInt, BeforeValidator(_json_integer)] = Field(
+        ge=0, le=MAX_SEED, description="An integer in 0 .. 2**31 - 1; keep it secret.", examples=[123456789])
+
+
+@router.get("/lessons/{lesson_id}/assignment", summary="The lesson's assignment seed (instructor)",
+            description="The secret seed every grading of this lesson derives its hidden data from (drawn on "
+                        "first use). Grade a file locally with the same data: `vision-lab grade LESSON "
+                        "file.py --seed SEED`. Needs the instructor token when one is set.",
+            responses=INSTRUCTOR_ERRORS)
+def get_assignment(service: Instructor, lesson_id: LessonId) -> LabJSONResponse:
+    lesson = service.catalog.get(lesson_id)
+    return LabJSONResponse({"lesson": lesson.id, "seed": service.queue.assignment_seed(lesson.id)})
+
+
+@router.put("/lessons/{lesson_id}/assignment", summary="Set the lesson's assignment seed (instructor)",
+            description="Submissions graded from now on use the new seed; POST /api/lessons/{id}/regrade "
+                        "grades the others again with it. Needs the instructor token when one is set.",
+            responses=INSTRUCTOR_ERRORS)
+def put_assignment(service: Instructor, lesson_id: LessonId, body: AssignmentSeed) -> LabJSONResponse:
+    lesson = service.catalog.get(lesson_id)
+    seed = service.queue.set_assignment_seed(lesson.id, body.seed)
+    return LabJSONResponse({"lesson": lesson.id, "seed": seed,
+                            "regrade_url": f"/api/lessons/{lesson.id}/regrade"})
+
+
+@router.post("/lessons/{lesson_id}/regrade", status_code=202, summary="Regrade a lesson (instructor)",
+             description="Every graded submission of the lesson (`done`, and `error`: a failure of the lab) "
+                         "goes back to `queued` and is graded again with the current assignment seed and "
+                         "lesson. Each keeps its previous results until the new ones replace them. A "
+                         "submission `running` now is not requeued (`running` counts them): regrade again "
+                         "once they are done if the seed changed meanwhile. Needs the instructor token when "
+                         "one is set.", responses=INSTRUCTOR_ERRORS)
+def regrade(service: Instructor, lesson_id: LessonId) -> LabJSONResponse:
+    lesson = service.catalog.get(lesson_id)
+    requeued = service.regrade(lesson.id)
+    return LabJSONResponse({"lesson": lesson.id, "requeued": requeued,
+                            "running": service.queue.counts(lesson.id)["running"],
+                            "submissions_url": f"/api/lessons/{lesson.id}/submissions"}, status_code=202)
+
+
+@router.get("/lessons/{lesson_id}/stats", summary="The class's results (instructor)",
+            description="Over the latest graded submission of each student: per check, how many failed it, "
+                        "their share and the hints given; the score distribution; the checks that never fail "
+                        "or fail everyone (flagged from `min_submissions` submissions). Needs the instructor "
+                        "token when one is set.", responses=INSTRUCTOR_ERRORS)
+def lesson_stats(service: Instructor, lesson_id: LessonId) -> LabJSONResponse:
+    lesson = service.catalog.get(lesson_id)
+    return LabJSONResponse(service.stats(lesson.id).to_json())
 
 
 def _check_instructor(request: Request, service: LessonService) -> None:

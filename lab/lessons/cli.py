@@ -5,6 +5,15 @@
     vision-lab lesson list [--json]
     vision-lab lesson validate LESSON
     vision-lab lesson run LESSON --report DIR [--dataset NAME] [--seed N]
+    vision-lab lesson seed LESSON [--set N]
+    vision-lab lesson stats LESSON [--json]
+
+``grade --seed N`` grades with the assignment seed N (``$VISION_LAB_ASSIGNMENT_SEED`` when no
+``--seed`` is given): the same file gets the same score every time, and the score the server gives
+when N is the lesson's stored seed (``vision-lab lesson seed LESSON`` prints it). Without either it
+is a practice run on fresh data, said so on stderr, not a grade. ``lesson seed`` and ``lesson stats``
+read the submissions database of the lesson server (``$VISION_LAB_DATABASE_URL``, else the default
+SQLite file).
 
 LESSON is a lesson id (``01-calibration``), its name (``calibration``) or the path of a lesson
 folder. ``grade`` exits 0 whenever grading ran (whatever the score) and writes Gradescope's
@@ -17,15 +26,24 @@ from __future__ import annotations
 
 import contextlib
 import json
+import os
 from collections.abc import Iterator
 from pathlib import Path
-from typing import Annotated
+from typing import TYPE_CHECKING, Annotated
 
 import typer
 
 from lab.core.errors import InvalidValue, LabError
 
+if TYPE_CHECKING:
+    from lab.lessons.store import SubmissionQueue
+
 EXIT_USAGE = 2
+
+#: The assignment seed of ``vision-lab grade`` when ``--seed`` is not given.
+SEED_VARIABLE = "VISION_LAB_ASSIGNMENT_SEED"
+
+PRACTICE_NOTE = "practice run: fresh data, not a grade; give --seed (the assignment seed) to grade"
 
 
 def _error(field: str, reason: str) -> None:
@@ -55,14 +73,31 @@ def _read_submission(path: Path) -> str:
                                          "source") from None
 
 
+def _assignment_seed(seed: int | None) -> int | None:
+    """``--seed``, else ``$VISION_LAB_ASSIGNMENT_SEED``, else None (a practice run); checked like the
+    server's seeds (0 .. 2**31 - 1)."""
+    from lab.lessons.store import check_seed
+
+    if seed is not None:
+        return check_seed(seed, field="--seed")
+    text = os.environ.get(SEED_VARIABLE, "").strip()
+    if not text:
+        return None
+    if not text.isdigit():
+        raise InvalidValue(SEED_VARIABLE, f"an assignment seed is an integer, not {text[:40]!r}")
+    return check_seed(int(text), field=SEED_VARIABLE)
+
+
 def grade_command(
     lesson: Annotated[str, typer.Argument(help="Lesson id (01-calibration), name (calibration) or folder.")],
     submission: Annotated[Path | None, typer.Argument(help="The student's .py file.")] = None,
     reference: Annotated[bool, typer.Option("--reference",
                                             help="Grade the lab's own implementation.")] = False,
     out: Annotated[Path | None, typer.Option("--out", help="Write Gradescope's results.json here.")] = None,
-    seed: Annotated[int | None, typer.Option("--seed", help="Derive every dataset's seed from N (default: "
-                                                            "fresh secret seeds).")] = None,
+    seed: Annotated[int | None, typer.Option("--seed", help="The assignment seed: every hidden dataset is "
+                                                            "derived from N (default: "
+                                                            "$VISION_LAB_ASSIGNMENT_SEED, else a practice "
+                                                            "run on fresh data).")] = None,
     as_json: Annotated[bool, typer.Option("--json", help="Print results.json instead of a summary.")] = False,
     unsafe_sandbox: Annotated[bool, typer.Option(
         "--unsafe-sandbox", help="Run the submission without the bubblewrap sandbox, with Python's audit "
@@ -71,7 +106,8 @@ def grade_command(
     """Grade a submission (or the reference) and write Gradescope's results.json.
 
     Submissions run in the bubblewrap sandbox (docs/sandbox.md); where it cannot run, grading
-    stops with an error naming the fix (exit 2) unless ``--unsafe-sandbox`` is given.
+    stops with an error naming the fix (exit 2) unless ``--unsafe-sandbox`` is given. Without an
+    assignment seed (``--seed``, ``$VISION_LAB_ASSIGNMENT_SEED``) it is a practice run, said on stderr.
     """
     from lab.lessons.format import find_lesson
     from lab.lessons.grader import grade
@@ -83,13 +119,17 @@ def grade_command(
         if reference == (submission is not None):
             raise InvalidValue("SUBMISSION", "give a submission file, or --reference to grade the lab's own "
                                              "implementation (not both)")
+        assignment_seed = _assignment_seed(seed)
         found = find_lesson(lesson)
         source = None if reference or submission is None else _read_submission(submission)
-        report = grade(found, source, reference=reference, seed=seed)
+        report = grade(found, source, reference=reference, seed=assignment_seed,
+                       practice=assignment_seed is None)
         results = report.results_json()
         if out is not None:
             out.parent.mkdir(parents=True, exist_ok=True)
             out.write_text(json.dumps(results, indent=2), encoding="utf-8")
+    if assignment_seed is None:
+        typer.echo(PRACTICE_NOTE, err=True)
     if as_json:
         typer.echo(json.dumps(results, indent=2))
         return
@@ -166,16 +206,71 @@ def run_command(
     typer.echo(f"report written to {index}")
 
 
+def _open_queue() -> SubmissionQueue:
+    """The lesson server's submissions database (``$VISION_LAB_DATABASE_URL`` or the default file)."""
+    from lab.lessons.store import SubmissionQueue
+
+    return SubmissionQueue()
+
+
+def seed_command(
+    lesson: Annotated[str, typer.Argument(help="Lesson id, name or folder.")],
+    set_seed: Annotated[int | None, typer.Option("--set", help="Store N (0 .. 2**31 - 1) as the lesson's "
+                                                               "assignment seed.")] = None,
+) -> None:
+    """Print the lesson's assignment seed (drawn and stored on first use), or set it (for instructors).
+
+    The seed is the server's: the database of ``$VISION_LAB_DATABASE_URL`` (else the default SQLite
+    file). After setting it, regrade the class (POST /api/lessons/{id}/regrade) so every submission
+    uses it.
+    """
+    from lab.lessons.format import find_lesson
+    from lab.lessons.store import check_seed
+
+    with _user_errors():
+        found = find_lesson(lesson)
+        queue = _open_queue()
+        try:
+            seed = (queue.assignment_seed(found.id) if set_seed is None
+                    else queue.set_assignment_seed(found.id, check_seed(set_seed, field="--set")))
+        finally:
+            queue.close()
+    typer.echo(str(seed))
+
+
+def stats_command(
+    lesson: Annotated[str, typer.Argument(help="Lesson id, name or folder.")],
+    as_json: Annotated[bool, typer.Option("--json", help="Print the statistics as JSON.")] = False,
+) -> None:
+    """The class's results (for instructors): per check the share that failed it and the hints given, the
+    score distribution, and the checks that never fail or fail everyone; the latest graded submission of
+    each student counts."""
+    from lab.lessons.format import find_lesson
+    from lab.lessons.stats import class_stats, format_table, latest_per_student
+
+    with _user_errors():
+        found = find_lesson(lesson)
+        queue = _open_queue()
+        try:
+            stats = class_stats(latest_per_student(queue.list(found.id, limit=None)), lesson=found.id)
+        finally:
+            queue.close()
+    typer.echo(json.dumps(stats.to_json(), indent=2) if as_json else format_table(stats))
+
+
 def register(app: typer.Typer) -> None:
     """Add ``grade`` and the ``lesson`` sub-commands to the ``vision-lab`` app."""
     app.command("grade", help="Grade a submission (or --reference) and write Gradescope's "
                               "results.json.")(grade_command)
-    lesson_app = typer.Typer(help="Lessons: list, validate, run one headless with an HTML report.",
-                             no_args_is_help=True)
+    lesson_app = typer.Typer(help="Lessons: list, validate, run one headless with an HTML report; an "
+                                  "assignment's seed and a class's results.", no_args_is_help=True)
     lesson_app.command("list")(list_command)
     lesson_app.command("validate")(validate_command)
     lesson_app.command("run")(run_command)
+    lesson_app.command("seed")(seed_command)
+    lesson_app.command("stats")(stats_command)
     app.add_typer(lesson_app, name="lesson")
 
 
-__all__ = ["grade_command", "list_command", "register", "run_command", "validate_command"]
+__all__ = ["grade_command", "list_command", "register", "run_command", "seed_command", "stats_command",
+           "validate_command"]

@@ -10,9 +10,15 @@
 ``VISION_LAB_GRADING_WORKERS``
     Number of grading threads (default 1; each grading uses one sandbox process).
 ``VISION_LAB_INSTRUCTOR_TOKEN``
-    When set, ``GET /api/lessons/{id}/submissions`` needs ``Authorization: Bearer <token>``.
+    When set, the instructor's routes (a lesson's submissions, its assignment seed, a regrade, the
+    class's stats, a submission's instructor view) need ``Authorization: Bearer <token>``.
 ``VISION_LAB_MAX_SUBMISSION_BYTES``
     Largest accepted upload (default 256 KiB).
+
+Every submission is graded with its lesson's assignment seed (kept in the submissions database,
+:meth:`~lab.lessons.store.SubmissionQueue.assignment_seed`), so a regrade of the same file gives the
+same score; :meth:`LessonService.regrade` requeues a lesson's graded submissions after the seed or
+the lesson changed.
 """
 
 from __future__ import annotations
@@ -24,6 +30,7 @@ from typing import Any
 from lab.lessons import isolation
 from lab.lessons.format import LessonCatalog
 from lab.lessons.sandbox import remove_stale_workdirs
+from lab.lessons.stats import ClassStats, class_stats, latest_per_student
 from lab.lessons.store import GradeFunction, Submission, SubmissionQueue, WorkerPool
 
 DEFAULT_MAX_SUBMISSION_BYTES = 256 * 1024
@@ -61,7 +68,7 @@ class LessonService:
         from lab.lessons.grader import grade
 
         lesson = self.catalog.get(submission.lesson)
-        return grade(lesson, submission.source).results_json()
+        return grade(lesson, submission.source, seed=self.queue.assignment_seed(lesson.id)).results_json()
 
     def start(self) -> int:
         """Remove what a crash left in the temporary folder, requeue what a killed server left running, check
@@ -98,3 +105,15 @@ class LessonService:
         submission_id = self.queue.submit(lesson, filename, source, student=student)
         self.pool.wake()
         return submission_id
+
+    def regrade(self, lesson: str) -> int:
+        """Requeue every graded (``done`` or ``error``) submission of the lesson, to be graded again with
+        its current assignment seed; returns how many. Their results stay until the new ones land."""
+        requeued = self.queue.requeue_lesson(lesson)
+        self.pool.wake()
+        return requeued
+
+    def stats(self, lesson: str) -> ClassStats:
+        """The class's view of a lesson: the latest graded submission of each student
+        (:mod:`lab.lessons.stats`)."""
+        return class_stats(latest_per_student(self.queue.list(lesson, limit=None)), lesson=lesson)

@@ -12,12 +12,18 @@ The database is SQLite (a file in the user's data folder) by default and any SQL
 ``VISION_LAB_DATABASE_URL`` (``postgresql+psycopg://user:pass@host/course`` for a real course).
 One server process owns a database's queue: requeueing at start-up assumes no other live
 process is grading from the same database.
+
+The same database keeps each lesson's *assignment seed* (table ``lesson_assignments``): the secret
+from which the grader derives every hidden dataset of a grading run, drawn once per lesson
+(:meth:`SubmissionQueue.assignment_seed`) or set by the instructor, so a regrade of the same file
+gives the same score. It is never part of a submission's JSON.
 """
 
 from __future__ import annotations
 
 import logging
 import os
+import secrets
 import threading
 import time
 import uuid
@@ -25,9 +31,13 @@ from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any, cast
 
-from sqlalchemy import Float, Integer, String, Text, create_engine, event, select, update
+from sqlalchemy import Float, Integer, String, Text, create_engine, event, insert, select, update
+from sqlalchemy.dialects import postgresql, sqlite
 from sqlalchemy.engine import CursorResult, Engine, Result
+from sqlalchemy.exc import IntegrityError
 from sqlalchemy.orm import DeclarativeBase, Mapped, Session, mapped_column
+
+from lab.core.errors import InvalidValue
 
 log = logging.getLogger("lab.lessons")
 
@@ -35,6 +45,12 @@ log = logging.getLogger("lab.lessons")
 MAX_ATTEMPTS = 3
 
 STATUSES = ("queued", "running", "done", "error")
+
+#: The largest assignment seed: 31 bits, so it fits a signed 32-bit INTEGER column on every database.
+MAX_SEED = 2**31 - 1
+
+#: Statuses a regrade puts back in the queue (``error`` too: it was the lab's fault, maybe fixed since).
+REGRADED = ("done", "error")
 
 
 def _rowcount(result: Result[Any]) -> int:
@@ -66,6 +82,25 @@ class SubmissionRow(Base):
     max_score: Mapped[float | None] = mapped_column(Float, nullable=True)
     results: Mapped[str | None] = mapped_column(Text, nullable=True)
     error: Mapped[str | None] = mapped_column(Text, nullable=True)
+
+
+class AssignmentRow(Base):
+    """A lesson's assignment seed: drawn on first use or set by the instructor, never shown to students."""
+
+    __tablename__ = "lesson_assignments"
+
+    lesson: Mapped[str] = mapped_column(String(128), primary_key=True)
+    seed: Mapped[int] = mapped_column(Integer)
+    created: Mapped[float] = mapped_column(Float)
+
+
+def check_seed(value: object, *, field: str = "seed") -> int:
+    """``value`` as an assignment seed (an integer in 0 .. 2**31 - 1), else :class:`InvalidValue`."""
+    if isinstance(value, bool) or not isinstance(value, int):
+        raise InvalidValue(field, f"an assignment seed is an integer, not {type(value).__name__}")
+    if not 0 <= value <= MAX_SEED:
+        raise InvalidValue(field, f"an assignment seed is between 0 and {MAX_SEED} (31 bits), not {value}")
+    return int(value)
 
 
 @dataclass(frozen=True)
@@ -202,21 +237,85 @@ class SubmissionQueue:
             log.warning("requeued %d interrupted submission(s), gave up on %d", requeued, gave_up)
         return int(requeued)
 
+    def requeue_lesson(self, lesson: str) -> int:
+        """A regrade: every ``done`` (or ``error``) submission of ``lesson`` goes back to ``queued``; returns
+        how many. Their previous results stay until the new ones replace them (:meth:`finish`), so a
+        regrade that is interrupted loses no grade; a submission ``running`` now is not touched."""
+        with Session(self.engine) as session, session.begin():
+            requeued = _rowcount(session.execute(
+                update(SubmissionRow)
+                .where(SubmissionRow.lesson == lesson, SubmissionRow.status.in_(REGRADED))
+                .values(status="queued", started=None, attempts=0)))
+        if requeued:
+            log.info("regrading %d submission(s) of %s", requeued, lesson)
+        return int(requeued)
+
+    # --- assignment seeds ------------------------------------------------------------------------------
+    def assignment_seed(self, lesson: str) -> int:
+        """The lesson's assignment seed, drawn with :mod:`secrets` on first use. Race-safe: two workers
+        (or servers) asking at once both insert-or-ignore, then read the one row that won."""
+        seed = self._stored_seed(lesson)
+        if seed is None:
+            self._insert_seed(lesson, secrets.randbits(31))
+            seed = self._stored_seed(lesson)
+            assert seed is not None  # inserted by this call or by the one that won the race
+        return seed
+
+    def set_assignment_seed(self, lesson: str, seed: int) -> int:
+        """Store ``seed`` (checked by :func:`check_seed`) as the lesson's assignment seed; returns it.
+        Submissions graded from now on use it; regrade the lesson (:meth:`requeue_lesson`) for the others."""
+        seed = check_seed(seed)
+        with Session(self.engine) as session, session.begin():
+            changed = session.execute(update(AssignmentRow).where(AssignmentRow.lesson == lesson)
+                                      .values(seed=seed, created=time.time()))
+        if _rowcount(changed) == 0 and not self._insert_seed(lesson, seed):
+            with Session(self.engine) as session, session.begin():  # inserted by another call meanwhile
+                session.execute(update(AssignmentRow).where(AssignmentRow.lesson == lesson).values(seed=seed))
+        return seed
+
+    def _stored_seed(self, lesson: str) -> int | None:
+        with Session(self.engine) as session:
+            seed = session.execute(select(AssignmentRow.seed).where(AssignmentRow.lesson == lesson)).scalar()
+        return None if seed is None else int(seed)
+
+    def _insert_seed(self, lesson: str, seed: int) -> bool:
+        """INSERT the row unless one exists (``ON CONFLICT DO NOTHING`` on SQLite and PostgreSQL, a caught
+        IntegrityError elsewhere); whether this call inserted it."""
+        values = {"lesson": lesson, "seed": int(seed), "created": time.time()}
+        dialect = self.engine.dialect.name
+        if dialect in ("sqlite", "postgresql"):
+            statement = (sqlite.insert(AssignmentRow).values(**values).on_conflict_do_nothing(
+                index_elements=["lesson"]) if dialect == "sqlite" else postgresql.insert(AssignmentRow)
+                .values(**values).on_conflict_do_nothing(index_elements=["lesson"]))
+            with Session(self.engine) as session, session.begin():
+                return _rowcount(session.execute(statement)) == 1
+        try:
+            with Session(self.engine) as session, session.begin():
+                session.execute(insert(AssignmentRow).values(**values))
+        except IntegrityError:
+            return False
+        return True
+
     def get(self, submission_id: str) -> Submission | None:
         with Session(self.engine) as session:
             row = session.get(SubmissionRow, submission_id)
             return Submission.of(row) if row is not None else None
 
-    def list(self, lesson: str | None = None, *, limit: int = 1000) -> list[Submission]:
+    def list(self, lesson: str | None = None, *, limit: int | None = 1000) -> list[Submission]:
+        """Submissions, newest first (``limit=None``: all of them)."""
         with Session(self.engine) as session:
             query = select(SubmissionRow).order_by(SubmissionRow.created.desc()).limit(limit)
             if lesson is not None:
                 query = query.where(SubmissionRow.lesson == lesson)
             return [Submission.of(row) for row in session.execute(query).scalars()]
 
-    def counts(self) -> dict[str, int]:
+    def counts(self, lesson: str | None = None) -> dict[str, int]:
+        """Submissions per status (of one lesson, or all)."""
+        query = select(SubmissionRow.status)
+        if lesson is not None:
+            query = query.where(SubmissionRow.lesson == lesson)
         with Session(self.engine) as session:
-            rows = session.execute(select(SubmissionRow.status)).scalars().all()
+            rows = session.execute(query).scalars().all()
         return {status: sum(1 for r in rows if r == status) for status in STATUSES}
 
     def close(self) -> None:
