@@ -3,7 +3,7 @@
     vision-lab grade LESSON SUBMISSION.py [--out results.json] [--seed N] [--json]
     vision-lab grade LESSON --reference [--out results.json] [--seed N]
     vision-lab lesson list [--json]
-    vision-lab lesson validate LESSON
+    vision-lab lesson validate LESSON [--no-mutants] [--json]
     vision-lab lesson run LESSON --report DIR [--dataset NAME] [--seed N]
     vision-lab lesson seed LESSON [--set N]
     vision-lab lesson stats LESSON [--json]
@@ -169,14 +169,32 @@ def list_command(as_json: Annotated[bool, typer.Option("--json", help="Print JSO
         typer.echo(f"{entry['id']}  {entry['title']}  ({detail})")
 
 
-def validate_command(lesson: Annotated[str, typer.Argument(help="Lesson id, name or folder.")]) -> None:
-    """Check a lesson folder against the format and its module (for instructors)."""
+def validate_command(
+    lesson: Annotated[str, typer.Argument(help="Lesson id, name or folder.")],
+    mutants: Annotated[bool, typer.Option("--mutants/--no-mutants",
+                                          help="Mutation-test the checks (lab.lessons.validate).")] = True,
+    as_json: Annotated[bool, typer.Option("--json", help="Print the mutation report as JSON.")] = False,
+) -> None:
+    """Check a lesson folder against the format and its module, then mutation-test its checks: every check
+    must be failed by some mutant of the reference, every mutant caught (or documented as correct in
+    [tasks.correct_mutants]). Exits 2 when it does not validate."""
     from lab.lessons.format import find_lesson
+    from lab.lessons.validate import mutation_report
 
     with _user_errors():
         found = find_lesson(lesson)
-    typer.echo(f"{found.id}: ok ({len(found.tasks)} tasks, {sum(len(t.checks) for t in found.tasks)} checks, "
-               f"{found.points:g} points)")
+    typer.echo(f"{found.id}: format ok ({len(found.tasks)} tasks, {sum(len(t.checks) for t in found.tasks)} "
+               f"checks, {found.points:g} points)", err=as_json)
+    for warning in found.warnings:
+        typer.echo(f"warning: {warning}", err=True)
+    if not mutants:
+        return
+    with _user_errors():
+        report = mutation_report(found)
+    typer.echo(json.dumps(report.to_json(), indent=2) if as_json else report.text())
+    if not report.ok:
+        _error("lesson", f"{found.id} does not validate: {len(report.problems)} problems (listed above)")
+        raise typer.Exit(EXIT_USAGE)
 
 
 def run_command(

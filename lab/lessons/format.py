@@ -196,6 +196,7 @@ class Task:
     title: str
     checks: tuple[Check, ...]
     signature: str = ""
+    correct_mutants: dict[str, str] = field(default_factory=dict)  # mutant name -> why it is correct
 
     @property
     def points(self) -> float:
@@ -346,7 +347,7 @@ def resolve_pipeline(module: str) -> Pipeline:
 
 # --- loading ------------------------------------------------------------------------------------
 _TOP_KEYS = {"lesson", "limits", "datasets", "hints", "tasks"}
-_TASK_KEYS = {"name", "step", "title", "checks"}
+_TASK_KEYS = {"name", "step", "title", "checks", "correct_mutants"}
 _CHECK_KEYS = {"name", "points", "dataset", "compare", "stage", "value", "metric", "until", "params", "hints",
                "visibility"}
 #: Keys a task no longer takes, and why (each was a copy of something written elsewhere).
@@ -547,7 +548,18 @@ def _task(table: Any, where: str, datasets: dict[str, CheckDataset], hints: dict
         raise LessonFormatError(f"{where}.checks", f"check names must be unique within a task, got "
                                                    f"{check_names}")
     return Task(name=str(table.get("name", step)), step=step,
-                title=str(table.get("title", step.replace("_", " ").capitalize())), checks=checks)
+                title=str(table.get("title", step.replace("_", " ").capitalize())), checks=checks,
+                correct_mutants=_correct_mutants(table.get("correct_mutants", {}), f"{where}.correct_mutants"))
+
+
+def _correct_mutants(table: Any, where: str) -> dict[str, str]:
+    """``[tasks.correct_mutants]``: mutant name -> why it is correct (the mutation report accepts it)."""
+    reasons = {}
+    for name, why in _table(table, where).items():
+        if not isinstance(why, str) or len(why.strip()) < 10:
+            raise LessonFormatError(f"{where}.{name}", "say why this mutant is correct (a sentence)")
+        reasons[name] = why.strip()
+    return reasons
 
 
 def _check(table: Any, where: str, datasets: dict[str, CheckDataset], hints: dict[str, HintRule],

@@ -252,6 +252,7 @@ class StepRun:
     violations: tuple[str, ...] = ()
     flooded: int = 0
     downstream: dict[str, AfterRun | str] = field(default_factory=dict)  # until -> the run, or the error
+    exception: BaseException | None = None  # what the step raised (an in-process alternative or mutant)
 
 
 class DataRun:
@@ -556,6 +557,7 @@ class Grader:
             run.outputs = {name: session.state[name] for name in spec.writes if name in session.state}
         except StepFailed as exc:
             cause = exc.__cause__
+            run.exception = cause
             if isinstance(cause, SubmissionFailure):
                 run.failure = cause
                 if cause.kind in FATAL_KINDS:

@@ -73,12 +73,33 @@ def test_lesson_list_and_validate(app, tmp_path):
     assert result.exit_code == 0 and "00-toy  Toy lesson: noise and means" in result.stdout
     result = run(app, "lesson", "list", "--json", env={"VISION_LAB_LESSONS_DIR": str(FIXTURES / "lessons")})
     assert json.loads(result.stdout)[0]["points"] == 6.0
-    assert run(app, "lesson", "validate", TOY).stdout.startswith("00-toy: ok (2 tasks, 6 checks, 6 points)")
+    result = run(app, "lesson", "validate", TOY)
+    assert result.exit_code == 0, result.output
+    assert result.stdout.startswith("00-toy: format ok (2 tasks, 6 checks, 6 points)")
+    assert "0 surviving; 0 checks no mutant fails" in result.stdout and "means_summed" in result.stdout
     broken = tmp_path / "00-broken"
     broken.mkdir()
     (broken / "tasks.toml").write_text("[lesson]\n")
     result = run(app, "lesson", "validate", broken)
     assert result.exit_code == 2 and result.stderr.startswith("error: 00-broken/lesson.md: is missing")
+
+
+def test_lesson_validate_fails_a_lesson_with_a_check_no_mutant_fails(app, tmp_path):
+    """A check that cannot fail grades nothing: widen one check's tolerance until every mutant passes it, and
+    the surviving mutants and the check are named, exit 2."""
+    import shutil
+
+    lesson = tmp_path / "00-toy"
+    shutil.copytree(TOY, lesson)
+    text = (lesson / "tasks.toml").read_text()
+    wide = text.replace('params = { scale = 3 }\ncompare = "allclose"\nrtol = 1e-6',
+                        'params = { scale = 3 }\ncompare = "below"\nbound = 1e9')
+    assert wide != text
+    (lesson / "tasks.toml").write_text(wide)
+    result = run(app, "lesson", "validate", lesson)
+    assert result.exit_code == 2, result.output
+    assert "Mean intensity: scale = 3: no mutant fails this check" in result.stdout
+    assert result.stderr.startswith("error: lesson: 00-toy does not validate")
 
 
 def test_lesson_run_writes_a_report(app, tmp_path):
