@@ -240,7 +240,19 @@ def require_instructor(request: Request) -> LessonService:
     return service
 
 
+def require_configured_instructor(request: Request) -> LessonService:
+    """Like :func:`require_instructor`, for a secret (the assignment seed): a server without an instructor
+    token refuses, since anyone could otherwise read the seed and rebuild the hidden data."""
+    service = get_lesson_service(request)
+    if not service.instructor_token:
+        raise Forbidden("authorization", "the assignment seed is served only when the server has an "
+                                         "instructor token: set VISION_LAB_INSTRUCTOR_TOKEN")
+    _check_instructor(request, service)
+    return service
+
+
 Instructor = Annotated[LessonService, Depends(require_instructor)]
+SecretKeeper = Annotated[LessonService, Depends(require_configured_instructor)]
 INSTRUCTOR_ERRORS = error_responses({403: "Instructor token missing or wrong."})
 
 
@@ -263,18 +275,19 @@ class AssignmentSeed(BaseModel):
 @router.get("/lessons/{lesson_id}/assignment", summary="The lesson's assignment seed (instructor)",
             description="The secret seed every grading of this lesson derives its hidden data from (drawn on "
                         "first use). Grade a file locally with the same data: `vision-lab grade LESSON "
-                        "file.py --seed SEED`. Needs the instructor token when one is set.",
+                        "file.py --seed SEED`. Needs the instructor token, and a server without one refuses (403).",
             responses=INSTRUCTOR_ERRORS)
-def get_assignment(service: Instructor, lesson_id: LessonId) -> LabJSONResponse:
+def get_assignment(service: SecretKeeper, lesson_id: LessonId) -> LabJSONResponse:
     lesson = service.catalog.get(lesson_id)
     return LabJSONResponse({"lesson": lesson.id, "seed": service.queue.assignment_seed(lesson.id)})
 
 
 @router.put("/lessons/{lesson_id}/assignment", summary="Set the lesson's assignment seed (instructor)",
             description="Submissions graded from now on use the new seed; POST /api/lessons/{id}/regrade "
-                        "grades the others again with it. Needs the instructor token when one is set.",
+                        "grades the others again with it. Needs the instructor token (a server without one "
+                        "refuses, 403).",
             responses=INSTRUCTOR_ERRORS)
-def put_assignment(service: Instructor, lesson_id: LessonId, body: AssignmentSeed) -> LabJSONResponse:
+def put_assignment(service: SecretKeeper, lesson_id: LessonId, body: AssignmentSeed) -> LabJSONResponse:
     lesson = service.catalog.get(lesson_id)
     seed = service.queue.set_assignment_seed(lesson.id, body.seed)
     return LabJSONResponse({"lesson": lesson.id, "seed": seed,

@@ -266,3 +266,21 @@ def test_cli_grade_seed_from_the_option_or_the_environment_else_a_practice_run(c
     assert graded(practice)["score"] == 6.0 and practice.stderr.strip() == PRACTICE_NOTE
     bad = cli("grade", TOY, "--reference", env={"VISION_LAB_ASSIGNMENT_SEED": "seven"})
     assert bad.exit_code == 2 and bad.stderr.strip().startswith("error: VISION_LAB_ASSIGNMENT_SEED: ")
+
+
+def test_a_server_without_an_instructor_token_never_serves_the_seed(tmp_path):
+    """Without a token every instructor route is open (a laptop), but the seed is a secret: 403."""
+    from fastapi.testclient import TestClient
+
+    from lab.api.lessons import build_app
+    from lab.lessons.format import LessonCatalog
+    from lab.lessons.service import LessonService
+    from lab.lessons.store import SubmissionQueue
+
+    service = LessonService(catalog=LessonCatalog(FIXTURES / "lessons"),
+                            queue=SubmissionQueue(f"sqlite:///{tmp_path / 'open.sqlite'}"),
+                            grade=lambda submission: {})
+    with TestClient(build_app(service)) as client:
+        for method, body in (("get", None), ("put", {"seed": 5})):
+            response = client.request(method, "/api/lessons/00-toy/assignment", json=body)
+            assert response.status_code == 403 and "VISION_LAB_INSTRUCTOR_TOKEN" in response.text
