@@ -549,7 +549,8 @@ def _task(table: Any, where: str, datasets: dict[str, CheckDataset], hints: dict
                                                    f"{check_names}")
     return Task(name=str(table.get("name", step)), step=step,
                 title=str(table.get("title", step.replace("_", " ").capitalize())), checks=checks,
-                correct_mutants=_correct_mutants(table.get("correct_mutants", {}), f"{where}.correct_mutants"))
+                correct_mutants=_correct_mutants(table.get("correct_mutants", {}),
+                                                 f"{where}.correct_mutants"))
 
 
 def _correct_mutants(table: Any, where: str) -> dict[str, str]:
