@@ -275,7 +275,8 @@ class AssignmentSeed(BaseModel):
 @router.get("/lessons/{lesson_id}/assignment", summary="The lesson's assignment seed (instructor)",
             description="The secret seed every grading of this lesson derives its hidden data from (drawn on "
                         "first use). Grade a file locally with the same data: `vision-lab grade LESSON "
-                        "file.py --seed SEED`. Needs the instructor token, and a server without one refuses (403).",
+                        "file.py --seed SEED`. Needs the instructor token; a server without one refuses "
+                        "(403).",
             responses=INSTRUCTOR_ERRORS)
 def get_assignment(service: SecretKeeper, lesson_id: LessonId) -> LabJSONResponse:
     lesson = service.catalog.get(lesson_id)

@@ -171,9 +171,11 @@ class _SharedData:
         self.data: dict[str, list[DataRun]] = probe.data
         self.reference_runs: dict[tuple, StepRun] = probe.reference_runs
 
-    def grader(self, submission: ReferenceSubmission, *, alternatives: dict[str, Any] | None = None) -> Grader:
+    def grader(self, submission: ReferenceSubmission, *,
+               alternatives: dict[str, Any] | None = None) -> Grader:
         limits = self.lesson.limits.replace(total_timeout_s=1e9, call_timeout_s=1e9)
-        grader = Grader(self.lesson, submission, seeds=self.seeds, limits=limits, reference=True, seed=self.seed)
+        grader = Grader(self.lesson, submission, seeds=self.seeds, limits=limits, reference=True,
+                        seed=self.seed)
         grader.data, grader.reference_runs = self.data, self.reference_runs
         grader.alternatives.update(alternatives or {})
         return grader
