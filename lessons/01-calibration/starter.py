@@ -13,7 +13,8 @@ def estimate_homographies(corners, board_points, *, normalize=True):
 
     Args:
         corners: lab.core.Points2D. ``corners.xy`` (N, 2) float64 pixels, ``corners.view`` (N,) int
-            the image each corner lies in, ``corners.ids`` (N,) int the board corner it is.
+            the image each corner lies in, ``corners.ids`` (N,) int the board corner it is. A view may
+            hold only some of the board's corners, in any order, and views may come interleaved.
         board_points: (B, 3) float64 board corners in metres (Z = 0); corner k of a view is at
             ``board_points[corners.ids[k], :2]``.
         normalize: move both point sets so their centroid is at the origin and their mean distance

@@ -4,13 +4,14 @@ The synthetic generator (:func:`synthetic`) renders the board printed on white p
 camera with known ``K``, OpenCV distortion and poses, anti-aliased exactly, slightly blurred, with
 corners displaced by a controlled amount of noise and a little pixel noise
 (:mod:`lab.modules.calibration.rendering`); its truth holds the exact ``K``, distortion, poses and
-projections of every corner. Both datasets give the state ``images`` (ImageSet) and ``board``
-(:class:`~lab.modules.calibration.board.Checkerboard`).
+projections of every corner; with partial boards (``missing_corners``, ``shuffle_corners``) it also gives
+the corners a detector of partial boards would report (:func:`partial_corners`). Both datasets give
+the state ``images`` (ImageSet) and ``board`` (:class:`~lab.modules.calibration.board.Checkerboard`).
 """
 
 from __future__ import annotations
 
-from typing import Annotated
+from typing import Annotated, Any
 
 import numpy as np
 
@@ -44,7 +45,8 @@ def synthetic(*, columns: Annotated[int, Range(3, 20)] = 9, rows: Annotated[int,
               noise_px: Annotated[float, Range(0.0, 5.0)] = 0.2,
               blur_px: Annotated[float, Range(0.0, 3.0)] = 0.7,
               image_noise: Annotated[float, Range(0.0, 0.2)] = 0.01,
-              color: bool = False, seed: int = 0) -> Loaded:
+              color: bool = False, missing_corners: Annotated[float, Range(0.0, 0.8)] = 0.0,
+              shuffle_corners: bool = False, seed: int = 0) -> Loaded:
     """A checkerboard seen by a camera with known intrinsics, distortion and poses (exact ground truth).
 
     Each view tilts the board by 50 to 100 % of ``pose_spread_deg`` about an axis in its plane
@@ -63,6 +65,15 @@ def synthetic(*, columns: Annotated[int, Range(3, 20)] = 9, rows: Annotated[int,
     pixel shows the board at ``b(x) - D(b(x))``, so corner ``i`` appears at ``p_i + d_i`` while the
     truth keeps the exact projection ``p_i``. Then Gaussian pixel noise of ``image_noise``.
     Rendering 15 views of 640 x 480 takes about a second.
+
+    Partial boards (``missing_corners > 0`` or ``shuffle_corners``): the dataset also gives the
+    corners, as a detector of partial boards (ChArUco's, say) reports them, so that
+    ``detect_corners`` (which finds whole boards only) is not needed: each corner at ``p_i + d_i``
+    (where the photo shows it) with its board id, every corner of a view left out with probability
+    ``missing_corners`` (at least 8 kept per view), and with ``shuffle_corners`` all of them in a
+    random order, the views interleaved. The photos and the truth are those of the same seed
+    without these options; running ``detect_corners`` again replaces the corners with the whole
+    boards it finds.
 
     Args:
         columns: inner corners per row of the board.
@@ -85,10 +96,15 @@ def synthetic(*, columns: Annotated[int, Range(3, 20)] = 9, rows: Annotated[int,
         blur_px: standard deviation of the lens blur in pixels (0: none).
         image_noise: standard deviation of the pixel noise (intensities in [0, 1]).
         color: render RGB images (tinted paper and background) instead of grayscale.
+        missing_corners: probability that a corner is left out of a view's corners (partial boards;
+            the dataset then gives the corners).
+        shuffle_corners: give the corners in a random order, views interleaved (the dataset then
+            gives the corners).
         seed: random seed of the poses and the noise.
 
     Truth: ``K`` (3, 3), ``dist`` (5,), ``rotations`` (V, 3, 3), ``translations`` (V, 3) (board to
-    camera), ``corners`` (Points2D of the exact projections, ``view`` and ``ids`` set).
+    camera), ``corners`` (Points2D of the exact projections of every corner, ``view`` and ``ids`` set).
+    With partial boards the state also holds ``corners``, ``board_points`` and ``views``.
     """
     import cv2
 
@@ -121,7 +137,41 @@ def synthetic(*, columns: Annotated[int, Range(3, 20)] = 9, rows: Annotated[int,
     description = (f"Synthetic: a {columns}x{rows} board ({square_size * 1000:g} mm squares) in {num_views} "
                    f"views of {width}x{height} px, fx={fx:g} fy={fy:g} cx={cx:g} cy={cy:g}, "
                    f"k1={k1:g} k2={k2:g} p1={p1:g} p2={p2:g} k3={k3:g}, corner noise {noise_px:g} px")
-    return Loaded({"images": ImageSet(tuple(images)), "board": board}, truth, description)
+    state: dict[str, Any] = {"images": ImageSet(tuple(images)), "board": board}
+    if missing_corners > 0 or shuffle_corners:
+        seen = Points2D((exact + displacement).reshape(-1, 2), view=truth_corners.view, ids=truth_corners.ids,
+                        image="images")
+        state.update(corners=partial_corners(seen, missing=missing_corners, shuffle=shuffle_corners,
+                                             rng=np.random.default_rng([seed, _PARTIAL_STREAM])),
+                     board_points=board.object_points(), views=np.arange(num_views, dtype=np.int64))
+        description += (f"; partial boards: each corner missing with probability {missing_corners:g}"
+                        + (", in random order" if shuffle_corners else ""))
+    return Loaded(state, truth, description)
+
+
+#: The random stream of :func:`partial_corners` (apart from the poses' and the noise's, so the photos of a
+#: seed are the same with and without partial boards).
+_PARTIAL_STREAM = 0xC0DE
+#: Fewest corners a view keeps with ``missing_corners`` (a homography needs 4; 8 keep it well determined).
+MIN_CORNERS_KEPT = 8
+
+
+def partial_corners(corners: Points2D, *, missing: float, shuffle: bool,
+                    rng: np.random.Generator) -> Points2D:
+    """``corners`` as a detector of partial boards reports them: each left out with probability ``missing``
+    (at least :data:`MIN_CORNERS_KEPT` kept per view, chosen at random), with ``shuffle`` in a random order
+    (the views interleaved); every corner keeps its view and board id."""
+    view = np.asarray(corners.view)
+    keep = rng.random(len(view)) >= missing
+    for v in np.unique(view):
+        mine = np.flatnonzero(view == v)
+        if keep[mine].sum() < MIN_CORNERS_KEPT:
+            keep[rng.choice(mine, size=min(MIN_CORNERS_KEPT, len(mine)), replace=False)] = True
+    order = np.flatnonzero(keep)
+    if shuffle:
+        order = rng.permutation(order)
+    ids = np.asarray(corners.ids)
+    return Points2D(corners.xy[order], view=view[order], ids=ids[order], image=corners.image)
 
 
 def sample_poses(board: Checkerboard, K: np.ndarray, dist: np.ndarray, width: int, height: int,
@@ -189,4 +239,4 @@ def folder(*, path: str, columns: Annotated[int, Range(2, 100)] = 9, rows: Annot
     return Loaded({"images": ImageSet(tuple(images)), "board": board}, {}, description)
 
 
-__all__ = ["folder", "sample_poses", "synthetic"]
+__all__ = ["MIN_CORNERS_KEPT", "folder", "partial_corners", "sample_poses", "synthetic"]

@@ -120,10 +120,15 @@ def estimate_homographies(corners: Points2D, board_points: np.ndarray, *,
     minimizes depends on the arbitrary origin and scale of the coordinates: move the image origin
     and the unnormalized answer changes, the normalized one does not (H&Z section 4.4.2).
     All views are solved at once by one batched SVD (views with fewer points are padded with zero
-    rows, which change nothing). Corresponds to ``cv2.findHomography(board_xy, pixels, 0)``.
+    rows, which change nothing). ``cv2.findHomography(board_xy, pixels, 0)`` starts from a
+    normalized DLT too but then refines H by Levenberg-Marquardt on the reprojection error (on noisy
+    corners about 1 % away from the DLT's answer).
 
     Args:
         normalize: apply Hartley's normalization (H&Z algorithm 4.2) before the DLT.
+
+    A view may hold any subset of the board's corners, in any order (each is paired with its board
+    point by ``corners.ids``).
 
     Returns ``(M, 3, 3)`` with ``H[2, 2] = 1``, in the order of the sorted unique ``corners.view``.
 
