@@ -406,9 +406,10 @@ def negated(got: np.ndarray, expected: np.ndarray, *, rtol: float = 1e-3) -> str
 
 
 def scaled(got: np.ndarray, expected: np.ndarray, *, rtol: float = 1e-3) -> str | None:
-    """Right up to a scale factor, where the exact scale matters."""
+    """Right up to a scale factor, where the exact scale matters (a factor of -1 is :func:`negated`)."""
     if got.shape == expected.shape and equal_up_to_scale(got, expected, rtol=rtol).passed \
-            and not allclose(got, expected, rtol=rtol, atol=1e-9).passed:
+            and not allclose(got, expected, rtol=rtol, atol=1e-9).passed \
+            and not allclose(-got, expected, rtol=rtol, atol=1e-9).passed:  # a sign flip is negated's
         return "your result is right up to a scale factor: normalise it as the task says"
     return None
 
@@ -488,20 +489,28 @@ def reflection(got: np.ndarray, expected: np.ndarray) -> str | None:
             "R itself")
 
 
-def float32_rounding(got: Any, expected: Any) -> str | None:
-    """The result is float32 where the reference's is float64, and the difference is float32's rounding
-    (the raw values, before the grader turns them into float64)."""
+def dtype_difference(got: Any, expected: Any) -> str | None:
+    """The result has another dtype than the reference's and that explains the difference: float32 where
+    float64 is expected (the difference is float32's rounding), or integers where floats are (rounded or
+    truncated). On the raw values, before the grader turns them into float64."""
     got_array, expected_array = np.asarray(got), np.asarray(expected)
-    if got_array.dtype != np.float32 or expected_array.dtype != np.float64 \
-            or got_array.shape != expected_array.shape:
+    if got_array.shape != expected_array.shape or expected_array.dtype.kind != "f" or got_array.size == 0:
         return None
     difference = np.abs(got_array.astype(np.float64) - expected_array)
-    allowed = 4 * np.finfo(np.float32).eps * (np.abs(expected_array) + np.abs(expected_array).max())
-    if not np.all(difference <= allowed) or not np.any(difference):
+    if not np.any(difference) or not np.all(np.isfinite(difference)):
         return None
-    return (f"your result is float32 (dtype {got_array.dtype}), the expected is float64: the difference, "
-            f"{float(difference.max()):.2g} at most, is float32's rounding. Compute in float64 (do not cast "
-            f"to np.float32)")
+    largest = float(difference.max())
+    if got_array.dtype == np.float32 and expected_array.dtype == np.float64:
+        allowed = 4 * np.finfo(np.float32).eps * (np.abs(expected_array) + np.abs(expected_array).max())
+        if np.all(difference <= allowed):
+            return (f"your result is float32 (dtype {got_array.dtype}), the expected is float64: the "
+                    f"difference, {largest:.2g} at most, is float32's rounding. Compute in float64 (do not "
+                    f"cast to np.float32)")
+    if got_array.dtype.kind in "iu" and largest <= 1.0:
+        return (f"your result holds integers (dtype {got_array.dtype}) where the expected holds floats "
+                f"(float64): the values were rounded or truncated, by at most {largest:.2g}. Keep them as "
+                f"floats (no astype(int), no // division)")
+    return None
 
 
 def structure_hint(got: Any, expected: Any) -> Hint | None:

@@ -30,7 +30,6 @@ from __future__ import annotations
 import inspect
 import logging
 import os
-import re
 import secrets
 import time
 import zlib
@@ -47,6 +46,7 @@ from lab.lessons import checks as checks_module
 from lab.lessons import isolation
 from lab.lessons import mutants as mutants_module
 from lab.lessons.checks import Hint
+from lab.lessons import messages
 from lab.lessons.format import Check, CheckDataset, Lesson, Limits, Task, parameters_of_spec
 from lab.lessons.sandbox import CallResult, Sandbox, SubmissionFailure
 
@@ -380,11 +380,11 @@ class Grader:
             lines.append("Practice run: fresh data, not the assignment's (a grade uses the assignment's "
                          "seed).")
         if self.load_failure is not None:
-            lines.append(_failure_text(self.load_failure, "your file", self.limits))
+            lines.append(messages.failure_text(self.load_failure, "your file", self.limits))
         printed = self.submission.printed_outside_calls()
         if printed:
             lines += ["What your file printed when loaded (or outside Python's print):",
-                      _truncate(printed, 2000)]
+                      messages.truncate(printed, 2000)]
         return "\n".join(lines)
 
     # --- one check ------------------------------------------------------------------------------------
@@ -403,11 +403,12 @@ class Grader:
         if count == 1:
             header += f"\nData: {data.describe(0)}"
         if check.params:
-            header += f"\nControls of {task.step}: {_format_params(check.params)}"
+            header += f"\nControls of {task.step}: {messages.format_params(check.params)}"
         if passed:
             test.score, test.status = check.points, "passed"
-        test.output = _truncate(f"{header}\n{_variants_text(data, bodies)}", MAX_TEST_OUTPUT)
-        test.hints = tuple(dict.fromkeys(name for body, _ in bodies.values() for name in _hint_names(body)))
+        test.output = messages.truncate(f"{header}\n{messages.variants_text(data, bodies)}", MAX_TEST_OUTPUT)
+        test.hints = tuple(dict.fromkeys(name for body, _ in bodies.values()
+                                         for name in messages.hint_names(body)))
         return test
 
     def _variant_body(self, task: Task, check: Check, problem: str | None, variant: int) -> tuple[str, bool]:
@@ -422,7 +423,7 @@ class Grader:
 
     def _check_body(self, task: Task, check: Check, problem: str | None, variant: int) -> tuple[str, bool]:
         if self.load_failure is not None:
-            return _failure_text(self.load_failure, "your file", self.limits), False
+            return messages.failure_text(self.load_failure, "your file", self.limits), False
         if problem:
             return problem, False
         if task.name in self.broken:
@@ -437,10 +438,11 @@ class Grader:
             raise LabError("reference", f"the reference {task.step} failed on the check data "
                                         f"({reference.error}); this is a problem of the lesson")
         student = self._step_run(task, where, params, student=True)
-        printed = (f"\nWhat your code printed:\n{_truncate(student.printed, 2000)}" if student.printed.strip()
+        shown = messages.truncate(student.printed, 2000)
+        printed = (f"\nWhat your code printed:\n{shown}" if student.printed.strip()
                    else "")
         if student.failure is not None or student.error:
-            text = (_failure_text(student.failure, f"{task.step}()", self.limits) if student.failure
+            text = (messages.failure_text(student.failure, f"{task.step}()", self.limits) if student.failure
                     else student.error)
             return text + printed, False
         if student.flooded:
@@ -461,11 +463,11 @@ class Grader:
         problem = checks_module.structure_problem(got, expected, what=f"{task.step}'s {value_name}")
         if problem:
             return (f"Your function returned a value of the wrong form: {problem}."
-                    + _structure_hint(got, expected)), False
+                    + messages.structure_hint(got, expected)), False
         outcome = self._compare(check, got, expected)
         hints = [] if outcome.passed else self._hints(task, check, student, reference, params, got, expected,
                                                       where)
-        return _outcome_text(outcome, f"{value_name}", hints), outcome.passed
+        return messages.outcome_text(outcome, f"{value_name}", hints), outcome.passed
 
     def _pipeline_body(self, task: Task, check: Check, student: StepRun, reference: StepRun,
                        params: dict[str, Any], where: tuple[str, int]) -> tuple[str, bool]:
@@ -476,13 +478,13 @@ class Grader:
         problem = checks_module.structure_problem(got_out, expected_out, what=f"{task.step}'s {first}")
         if problem:
             return ("The rest of the pipeline was not run: your function returned a value of the wrong "
-                    f"form: {problem}." + _structure_hint(got_out, expected_out)), False
+                    f"form: {problem}." + messages.structure_hint(got_out, expected_out)), False
         until = check.until or self.pipeline.steps[-1].name
         student_after = self._downstream(student, until)
         if isinstance(student_after, str):
             hints = self._hints(task, check, student, reference, params, got_out, expected_out, where)
             return (f"The rest of the pipeline failed on your output: {student_after}"
-                    + _hints_text(hints)), False
+                    + messages.hints_text(hints)), False
         reference_after = self._downstream(reference, until)
         if isinstance(reference_after, str):
             raise LabError("reference", f"the reference pipeline failed after {task.step}: {reference_after}")
@@ -495,7 +497,7 @@ class Grader:
                 warned = [w for record in student_after.records for w in record.warnings]
                 why = f": {'; '.join(dict.fromkeys(warned))}" if warned else ""
                 return (f"Failed: the lab's steps up to {until} could not measure {check.metric} on your "
-                        f"{first}{why}" + _hints_text(hints)), False
+                        f"{first}{why}" + messages.hints_text(hints)), False
             what = f"metric {check.metric} after running the pipeline to {until} on your {first}"
         else:
             got, expected = self._values(_as_run(student_after.session), _as_run(reference_after.session),
@@ -509,7 +511,7 @@ class Grader:
         outcome = self._compare(check, got, expected)
         hints = ([] if outcome.passed
                  else self._hints(task, check, student, reference, params, got_out, expected_out, where))
-        return _outcome_text(outcome, what, hints), outcome.passed
+        return messages.outcome_text(outcome, what, hints), outcome.passed
 
     def _compare(self, check: Check, got: Any, expected: Any) -> checks_module.Outcome:
         compare = checks_module.COMPARISONS[check.compare]
@@ -562,12 +564,12 @@ class Grader:
                 run.failure = cause
                 if cause.kind in FATAL_KINDS:
                     self.broken[task.name] = (f"{task.step}() failed on an earlier check: "
-                                              f"{_failure_kind_text(cause)}")
+                                              f"{messages.failure_kind_text(cause)}")
             else:
                 run.error = f"{task.step}() failed: {exc.reason}" if student else exc.reason
         except LabError as exc:  # the runner refused the returned value (type, NaN)
             run.error = (f"Your function returned a value of the wrong form: {exc.reason}"
-                         + _nan_hint(exc.reason)) if student else str(exc)
+                         + messages.nan_hint(exc.reason)) if student else str(exc)
         if proxy is not None:
             run.printed, run.violations, run.flooded = proxy.printed, proxy.violations, proxy.flooded
         cache[key] = run
@@ -705,18 +707,20 @@ class Grader:
     def _generic_hints(self, task: Task, where: tuple[str, int], params: dict[str, Any], got: Any,
                        expected: Any, got_array: np.ndarray, expected_array: np.ndarray,
                        matches: Callable[[Any], bool]) -> list[Hint]:
-        """The first generic detector that fires: a float32 result, a reflection, then the output
+        """The first generic detector that fires: a float32 or integer result, a reflection, then the output
         transforms and changed inputs of :mod:`lab.lessons.mutants` (NumPy-patching mutants are left to
         ``vision-lab lesson validate``: they would touch other gradings running in this process)."""
         raw_got, raw_expected = _primary_or_self(got), _primary_or_self(expected)
-        message = checks_module.float32_rounding(raw_got, raw_expected)
+        message = checks_module.dtype_difference(raw_got, raw_expected)
         if message:
-            return [checks_module.Hint("float32", message)]
+            name = "float32" if np.asarray(raw_got).dtype == np.float32 else "dtype"
+            return [checks_module.Hint(name, message)]
         for name in ("reflection", "transposed", "inverse", "negated", "scaled", "permuted"):
             message = checks_module.detect(name, got_array, expected_array, {})
-            if message and (name != "scaled" or not matches(expected_array * 2.0)):
+            if message:
                 return [checks_module.Hint(name, message)]
         spec = self.pipeline.step(task.step)
+        partial: list[tuple[mutants_module.Mutant, Any]] = []
         for mutant in mutants_module.generic_mutants(spec.func):
             if mutant.kind == "patch" or mutant.name in _DETECTED_DIRECTLY:
                 continue
@@ -730,7 +734,9 @@ class Grader:
                 alternative = self._alternative_value(task, where, params, mutant.name)
             if alternative is not None and matches(alternative):
                 return [checks_module.Hint(mutant.name, mutant.hint)]
-        return []
+            if alternative is not None:
+                partial.append((mutant, alternative))
+        return messages.partial_match(partial, got_array, expected_array)
 
     def _alternative_value(self, task: Task, where: tuple[str, int], params: dict[str, Any],
                            name: str) -> Any:
@@ -780,116 +786,6 @@ class _Proxy:
             raise
         self.printed, self.violations, self.flooded = result.printed, result.violations, result.flooded
         return result.value
-
-
-# --- messages ---------------------------------------------------------------------------------------------
-def _failure_kind_text(failure: SubmissionFailure) -> str:
-    return {"timeout": "it did not return in time", "cpu": "it used up its CPU time",
-            "crashed": "the process running it died", "load": "the file could not be loaded"}.get(
-        failure.kind, failure.kind)
-
-
-def _failure_text(failure: SubmissionFailure | None, what: str, limits: Limits) -> str:
-    if failure is None:
-        return ""
-    if failure.kind == "raised":
-        if failure.type_name == "NotImplementedError":
-            text = (f"{what} is not implemented yet: it raised NotImplementedError. Replace the "
-                    f"`raise NotImplementedError` in starter.py with your code.")
-        else:
-            text = f"{what} raised {failure.type_name}: {failure.message}"
-            hint = _exception_hint(failure)
-            if hint:
-                text += f"\nHint: {hint}"
-        if failure.traceback and failure.type_name != "NotImplementedError":
-            text += f"\n{failure.traceback}"
-        return text
-    if failure.kind == "blocked":
-        tried = f" (it tried: {'; '.join(failure.violations)})" if failure.violations else ""
-        return (f"{what} tried something submissions may not do{tried}: {failure.message}\n"
-                f"Submissions may use numpy, scipy and cv2 and the files in their own directory only.")
-    if failure.kind == "memory":
-        detail = f": {failure.message}" if failure.message else ""
-        return (f"{what} ran out of memory{detail}. A submission may allocate {limits.memory_mb:g} MB; keep "
-                f"arrays the size of the inputs.\n{failure.traceback}")
-    if failure.kind == "load" and failure.traceback:
-        return f"{failure.message}\n{failure.traceback}"
-    return failure.message
-
-
-def _exception_hint(failure: SubmissionFailure) -> str:
-    message = failure.message
-    if failure.type_name == "LinAlgError" and "SVD did not converge" in message:
-        return "the matrix you decompose contains NaN or infinite entries (a division by zero earlier?)"
-    if failure.type_name == "ValueError" and ("could not broadcast" in message or "shapes" in message):
-        return "array shapes do not match: print the shapes of the arrays on the failing line"
-    if failure.type_name == "IndexError":
-        return "an index is out of range: check the shapes of the inputs (they are in the docstring)"
-    if failure.type_name == "TypeError" and "argument" in message:
-        return "the pipeline calls your function with the parameters of starter.py: keep them unchanged"
-    return ""
-
-
-def _nan_hint(reason: str) -> str:
-    if "NaN" in reason:
-        return " (a division by zero, or the square root of a negative number?)"
-    return ""
-
-
-def _outcome_text(outcome: checks_module.Outcome, what: str, hints: list[Hint]) -> str:
-    return f"{'Passed' if outcome.passed else 'Failed'}: {what}: {outcome.message()}" + _hints_text(hints)
-
-
-def _hints_text(hints: list[Hint]) -> str:
-    """``Hint: <text> [<name>]`` lines, each text once."""
-    seen: dict[str, str] = {}
-    for hint in hints:
-        seen.setdefault(hint.text, hint.name)
-    return "".join(f"\nHint: {text} [{name}]" for text, name in seen.items())
-
-
-_HINT_LINE = re.compile(r"^Hint: .* \[([^\]]+)\]$", re.M)
-
-
-def _structure_hint(got: Any, expected: Any) -> str:
-    hint = checks_module.structure_hint(got, expected)
-    return _hints_text([hint]) if hint else ""
-
-
-def _hint_names(body: str) -> list[str]:
-    """The names of the hints a message gives (its ``Hint: ... [name]`` lines)."""
-    return _HINT_LINE.findall(body)
-
-
-def _variants_text(data: CheckDataset, bodies: dict[int, tuple[str, bool]]) -> str:
-    """What a check found on the variants of its data: the one body when there is one variant; else whether
-    all passed, or each failing variant (described) with its message, the same message written once."""
-    if len(bodies) == 1:
-        return next(iter(bodies.values()))[0]
-    count = len(bodies)
-    failing = [k for k in sorted(bodies) if not bodies[k][1]]
-    if not failing:
-        return f"Passed on all {count} variants of the data.\n{bodies[0][0]}"
-    lines = [f"Failed on {len(failing)} of the {count} variants of the data "
-             f"(variant{'s' if len(failing) > 1 else ''} {', '.join(str(k + 1) for k in failing)})."]
-    by_body: dict[str, list[int]] = {}
-    for k in failing:
-        by_body.setdefault(bodies[k][0], []).append(k)
-    for body, variants in by_body.items():
-        which = ", ".join(str(k + 1) for k in variants)
-        plural = "s" if len(variants) > 1 else ""
-        lines.append(f"Variant{plural} {which}: {data.describe(variants[0])}\n{body}")
-    return "\n".join(lines)
-
-
-def _format_params(params: dict[str, Any]) -> str:
-    return ", ".join(f"{k}={v!r}" for k, v in params.items())
-
-
-def _truncate(text: str, limit: int) -> str:
-    if len(text) <= limit:
-        return text
-    return text[:limit] + f"\n... ({len(text) - limit} more characters not shown)"
 
 
 #: Output mutants the generic hints recognise with a detector of their own (any scale, any order).

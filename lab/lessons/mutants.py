@@ -48,6 +48,7 @@ class Mutant:
     kind: MutantKind
     hint: str
     make: Callable[[Callable[..., Any]], Callable[..., Any]]
+    question: str = ""  # "of the reference transposed": how a hint that is not sure names it
 
     def __call__(self, reference: Callable[..., Any]) -> Callable[..., Any]:
         return self.make(reference)
@@ -160,7 +161,7 @@ def _output_mutant(name: str, transform: Callable[[np.ndarray], np.ndarray], hin
             array, put_back = primary_array(reference(*args, **kwargs))
             return put_back(transform(array))
         return mutant
-    return Mutant(name, "output", hint, make)
+    return Mutant(name, "output", hint, make, f"of the reference {name.replace('_', ' ')}")
 
 
 # --- changed inputs ------------------------------------------------------------------------------------
@@ -198,7 +199,7 @@ def _swapped(first: str, second: str) -> Mutant:
         return mutant
     return Mutant(f"swapped({first}, {second})", "inputs",
                   f"your result is what the computation gives with {first} and {second} swapped: check the "
-                  f"order in which you use them", make)
+                  f"order in which you use them", make, f"computed with {first} and {second} swapped")
 
 
 def _mask_dropped(name: str) -> Mutant:
@@ -214,7 +215,7 @@ def _mask_dropped(name: str) -> Mutant:
         return mutant
     return Mutant(f"mask_dropped({name})", "inputs",
                   f"your result is what the computation gives when every entry of {name} is True: use only "
-                  f"the entries {name} selects", make)
+                  f"the entries {name} selects", make, f"computed with every entry of {name} True")
 
 
 # --- NumPy patched during the call ---------------------------------------------------------------------
@@ -223,7 +224,7 @@ _PATCH_LOCK = threading.RLock()  # np.argmin is process-wide: one patched call a
 
 @contextlib.contextmanager
 def _numpy_patched(replacements: dict[str, Callable[..., Any]], called: list[str]) -> Iterator[None]:
-    originals = {name: getattr(np, name) for name in replacements}
+    originals = {name: getattr(np, name) for name in ("argmin", "argmax", *replacements)}
 
     def counting(name: str, function: Callable[..., Any]) -> Callable[..., Any]:
         def patched(*args: Any, **kwargs: Any) -> Any:
@@ -237,8 +238,8 @@ def _numpy_patched(replacements: dict[str, Callable[..., Any]], called: list[str
         try:
             yield
         finally:
-            for name, original in originals.items():
-                setattr(np, name, original)
+            for name in replacements:
+                setattr(np, name, originals[name])
 
 
 def _last_extreme(which: str) -> Callable[..., Any]:
