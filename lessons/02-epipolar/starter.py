@@ -37,9 +37,10 @@ def decompose_essential(E):
         E: (3, 3) float64 with singular values (1, 1, 0).
 
     Returns:
-        (4, 3, 4) float64: [R1 | t], [R2 | t], [R1 | -t], [R2 | -t] with U, S, Vt = np.linalg.svd(E)
-        (U negated if det(U) < 0, Vt negated if det(Vt) < 0), W = [[0, 1, 0], [-1, 0, 0], [0, 0, 1]],
-        R1 = U W Vt, R2 = U W^T Vt and t = U[:, 2] (unit length).
+        (4, 3, 4) float64: [R1 | t], [R2 | t], [R1 | -t], [R2 | -t], in any order (they are checked as a
+        set), with U, S, Vt = np.linalg.svd(E) (U negated if det(U) < 0, Vt negated if det(Vt) < 0: each R
+        must be a rotation, det +1), W = [[0, 1, 0], [-1, 0, 0], [0, 0, 1]], R1 = U W Vt, R2 = U W^T Vt
+        and t = U[:, 2] (unit length).
     """
     raise NotImplementedError
 
@@ -59,7 +60,7 @@ def recover_pose(candidates, x1, x2, K1, K2, inliers=None, *, candidate="cheiral
         (3, 4) float64: the chosen candidate [R | t] itself (one of the four, unchanged). For each
         candidate, triangulate every inlier (normalized coordinates K^-1 x, P1 = [I | 0],
         P2 = [R | t], linear DLT) and count the points with positive depth in both cameras: Z of X
-        in camera 1 and Z of R X + t in camera 2. Keep the candidate with the highest count (the
-        first one on a tie).
+        in camera 1 and Z of R X + t in camera 2 (both positive: one camera alone is not enough).
+        Keep the candidate with the highest count (the first one on a tie).
     """
     raise NotImplementedError

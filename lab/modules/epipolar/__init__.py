@@ -31,8 +31,8 @@ State names (float64 unless said):
                                       row 1 ``e2`` (``F^T e2 = 0``, in image 2); finite even at infinity
     epipole_points  Points2D          the epipoles that are finite, in pixels (view 0 / 1)
     E               (3, 3)            essential matrix ``K2^T F K1`` projected onto singular values (1, 1, 0)
-    candidates      (4, 3, 4)         the four ``[R | t]`` that E admits, in ``cv2.recoverPose``'s order
-                                      (R1, t), (R2, t), (R1, -t), (R2, -t)
+    candidates      (4, 3, 4)         the four ``[R | t]`` that E admits, (R1, t), (R2, t), (R1, -t),
+                                      (R2, -t) (a set: the order follows the signs of E's SVD)
     pose            (3, 4)            ``[R | t]`` of camera 2 chosen by the cheirality test, ``|t| = 1``
     R, t            (3, 3), (3,)      the relative pose after refinement (``X_2 = R X_1 + t``, ``|t| = 1``)
     points3d_dlt    (N, 3)            linear triangulation of the inliers (camera 1 frame, baseline = 1)

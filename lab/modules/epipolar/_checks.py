@@ -98,9 +98,22 @@ def check_rotation_translation(R: Any, t: Any, name: str = "R") -> tuple[np.ndar
     if R.shape != (3, 3) or t.shape != (3,) or not (np.all(np.isfinite(R)) and np.all(np.isfinite(t))):
         raise InvalidValue(name, f"expected a finite rotation (3, 3) and translation (3,), got {R.shape} and "
                                  f"{t.shape}")
-    if not np.allclose(R @ R.T, np.eye(3), atol=1e-6) or np.linalg.det(R) < 0:
-        raise InvalidValue(name, "the rotation must be orthonormal with determinant +1")
+    problem = rotation_problem(R)
+    if problem:
+        raise InvalidValue(name, f"{problem} (a rotation has R^T R = I and det R = +1)")
     return R, t
+
+
+def rotation_problem(R: np.ndarray) -> str | None:
+    """Why the finite ``(3, 3)`` ``R`` is no rotation, naming its value ("R has det -1: a reflection, not a
+    rotation"), or None."""
+    error = float(np.abs(R @ R.T - np.eye(3)).max())
+    if error > 1e-6:
+        return f"R is not orthonormal (R R^T differs from I by up to {error:.3g})"
+    det = float(np.linalg.det(R))
+    if det < 0:
+        return f"R has det {det:.3g}: a reflection, not a rotation"
+    return None
 
 
 def check_two_images(images: Any) -> ImageSet:

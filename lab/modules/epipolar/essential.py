@@ -26,8 +26,10 @@ def essential_candidates(E: np.ndarray) -> np.ndarray:
     ``R2 = U W^T V^T``, ``t = u3`` (U's last column), ``W = [[0, 1, 0], [-1, 0, 0], [0, 0, 1]]``.
     ``R1`` and ``R2`` differ by a half turn about the baseline, and ``+-t`` by the sign of the
     translation; only one of the four puts the points in front of both cameras (see
-    :func:`recover_pose`). Corresponds to ``cv2.decomposeEssentialMat(E)`` (same W, same order as
-    ``cv2.recoverPose`` tries them).
+    :func:`recover_pose`). Corresponds to ``cv2.decomposeEssentialMat(E)`` (same W and the same four
+    poses; which rotation is ``R1`` and the sign of ``t`` follow the signs each SVD picks, so the order of
+    OpenCV's may differ). ``U`` and ``V^T`` are made rotations first: with exactly one of determinant -1,
+    ``U W V^T`` would be a reflection.
 
     Reference: H&Z section 9.6.2, result 9.19.
     """

@@ -11,10 +11,11 @@ from typing import Any
 
 import numpy as np
 
+from lab.core import InvalidValue
 from lab.core.pipeline import Evaluation
 from lab.geometry.homogeneous import to_homogeneous
 from lab.geometry.rotations import rotation_angle_deg
-from lab.modules.epipolar._checks import inliers_or_all
+from lab.modules.epipolar._checks import inliers_or_all, rotation_problem
 from lab.modules.epipolar.distances import sampson_distance
 from lab.modules.epipolar.fundamental import numerical_rank
 
@@ -114,7 +115,13 @@ def evaluate_essential(state: dict[str, Any], truth: dict[str, Any]) -> dict[str
     return out
 
 
-def _rotation_and_direction_errors(R: np.ndarray, t: np.ndarray, truth: dict[str, Any]) -> dict[str, float]:
+def _rotation_and_direction_errors(R: np.ndarray, t: np.ndarray, truth: dict[str, Any], *,
+                                   what: str = "pose") -> dict[str, float]:
+    """``rotation_error_deg`` and ``translation_direction_error_deg`` against the truth; an ``R`` that is no
+    rotation (a reflection) has no rotation error: :class:`InvalidValue` names its value."""
+    problem = rotation_problem(np.asarray(R, dtype=np.float64))
+    if problem:
+        raise InvalidValue(what, f"{problem}, so its angle to the true rotation is not defined")
     out = {"rotation_error_deg": float(rotation_angle_deg(R, truth["R"]))}
     norm = np.linalg.norm(truth["t"])
     if norm > 0:
@@ -124,11 +131,17 @@ def _rotation_and_direction_errors(R: np.ndarray, t: np.ndarray, truth: dict[str
 
 
 def evaluate_candidates(state: dict[str, Any], truth: dict[str, Any]) -> dict[str, float]:
-    """With truth, ``best_candidate_rotation_error_deg``: the candidate rotation nearest the true one."""
+    """With truth, ``best_candidate_rotation_error_deg``: the candidate rotation nearest the true one (of
+    those that are rotations; ``reflections``: how many of the four have det R = -1)."""
     if "R" not in truth:
         return {}
-    angles = rotation_angle_deg(state["candidates"][:, :, :3], np.broadcast_to(truth["R"], (4, 3, 3)))
-    return {"best_candidate_rotation_error_deg": float(np.min(angles))}
+    rotations = np.asarray(state["candidates"], dtype=np.float64)[:, :, :3]
+    proper = np.array([rotation_problem(R) is None for R in rotations])
+    out: dict[str, float] = {"reflections": int(np.sum(np.linalg.det(rotations) < 0))}
+    if proper.any():
+        angles = rotation_angle_deg(rotations[proper], np.broadcast_to(truth["R"], (int(proper.sum()), 3, 3)))
+        out["best_candidate_rotation_error_deg"] = float(np.min(angles))
+    return out
 
 
 def evaluate_pose(state: dict[str, Any], truth: dict[str, Any]) -> dict[str, float]:
@@ -143,7 +156,7 @@ def evaluate_refined_pose(state: dict[str, Any], truth: dict[str, Any]) -> dict[
     """With truth, ``rotation_error_deg`` and ``translation_direction_error_deg`` of the refined R and t."""
     if "R" not in truth:
         return {}
-    return _rotation_and_direction_errors(np.asarray(state["R"]), np.asarray(state["t"]), truth)
+    return _rotation_and_direction_errors(np.asarray(state["R"]), np.asarray(state["t"]), truth, what="R")
 
 
 def _point_errors(points: np.ndarray, state: dict[str, Any], truth: dict[str, Any]) -> dict[str, float]:

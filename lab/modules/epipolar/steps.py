@@ -23,7 +23,7 @@ from lab.geometry.triangulation import refine_points as refine_point_positions
 from lab.modules.epipolar._checks import (SAMPLE_SIZE, DegenerateInput, TooFewMatches,
                                           check_matrix, check_pair, check_pose,
                                           check_rotation_translation, check_two_images, inliers_or_all,
-                                          intrinsics_for)
+                                          intrinsics_for, rotation_problem)
 from lab.modules.epipolar.degeneracy import check_determined, check_not_degenerate
 from lab.modules.epipolar.distances import sampson_distance, symmetric_epipolar_distance
 from lab.modules.epipolar.essential import (CANDIDATE_NAMES, cheirality_counts, essential_candidates,
@@ -372,6 +372,12 @@ def _candidates_of(value: Any) -> np.ndarray:
                                          f"4), got {array.shape}")
     if not np.all(np.isfinite(array)):
         raise InvalidValue("candidates", "contains NaN or infinite entries")
+    for index, pose in enumerate(array):
+        problem = rotation_problem(pose[:, :3])
+        if problem:
+            raise InvalidValue("candidates", f"candidate {index} ({CANDIDATE_NAMES[index]}): {problem} (each "
+                                             "of the four must be [R | t] with a rotation R: R^T R = I, "
+                                             "det R = +1)")
     return array
 
 
