@@ -3,7 +3,8 @@
     vision-lab grade 08-diffusion starter.py
 
 You may import numpy (not the lab's own implementation, not torch). Keep the signatures.
-Every array is float64 (N, D): N noised digits of D = 64 pixels in the network's units ([-1, 1]).
+Every array is float64 (N, D): N noised digits of D = 64 pixels in the network's units ([-1, 1]);
+you may compute in float32 or float64 (the checks allow 1e-5).
 """
 
 import numpy as np

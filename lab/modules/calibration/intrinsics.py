@@ -60,18 +60,23 @@ def intrinsics_from_conic(b: np.ndarray, *, zero_skew: bool) -> np.ndarray:
     B11, B12, B22, B13, B23, B33 = b
     denominator = B11 * B22 - B12 * B12
     if B11 <= 0 or denominator <= 0:
-        raise InvalidValue("homographies", "the estimated absolute conic is not positive definite: the views "
-                                           "are degenerate or too noisy")
+        raise InvalidValue("homographies", _not_positive_definite(f"B11 = {B11:.3g}, B11 B22 - B12^2 = "
+                                                                  f"{denominator:.3g}"))
     v0 = (B12 * B13 - B11 * B23) / denominator
     lam = B33 - (B13 * B13 + v0 * (B12 * B13 - B11 * B23)) / B11
     if lam / B11 <= 0:
-        raise InvalidValue("homographies", "the estimated absolute conic is not positive definite: the views "
-                                           "are degenerate or too noisy")
+        raise InvalidValue("homographies", _not_positive_definite(f"lambda / B11 = {lam / B11:.3g}"))
     alpha = np.sqrt(lam / B11)
     beta = np.sqrt(lam * B11 / denominator)
     gamma = 0.0 if zero_skew else -B12 * alpha * alpha * beta / lam
     u0 = gamma * v0 / beta - B13 * alpha * alpha / lam
     return np.array([[alpha, gamma, u0], [0.0, beta, v0], [0.0, 0.0, 1.0]])
+
+
+def _not_positive_definite(which: str) -> str:
+    return (f"the absolute conic these homographies give is not positive definite ({which}), so no camera "
+            "matrix K has it: the homographies are not those of a plane seen by one camera (wrong "
+            "correspondences, or H maps the other way), or the views are degenerate or too noisy")
 
 
 __all__ = ["absolute_conic", "conic_constraints", "intrinsics_from_conic", "zhang_v"]
