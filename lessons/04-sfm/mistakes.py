@@ -14,6 +14,7 @@ from lab.core import Points2D
 from lab.geometry.camera import pixels_to_normalized
 from lab.geometry.pnp import dlt_projection_matrices
 from lab.geometry.rotations import nearest_rotation
+from lab.geometry.triangulation import projection_matrix, triangulate_dlt
 from lab.modules import sfm_basics
 
 
@@ -64,6 +65,20 @@ def pnp_sign_from_last_entry(points3d, observations, K):
     return poses * np.where(poses[:, 2, 3] < 0, -1.0, 1.0)[:, None, None]
 
 
+def pnp_in_pixels(points3d, observations, K):
+    """The DLT solved on the pixels as they are (``K^-1 x`` forgotten): ``P`` is ``K [R | t]`` up to scale, the
+    rest as the lesson says (the lab's DLT given ``K = I``)."""
+    return _poses_from(_dlt_matrices(points3d, observations, np.eye(3), hartley=True), project_onto_so3=True)
+
+
+def pnp_t_over_largest_singular_value(points3d, observations, K):
+    """``t = P[:, 3] / S[0]``, the largest singular value of ``P[:, :3]``, instead of their mean."""
+    matrices = _dlt_matrices(points3d, observations, K, hartley=True)
+    blocks = matrices[:, :, :3]
+    largest = np.linalg.svd(blocks, compute_uv=False)[:, :1, None]
+    return np.concatenate([nearest_rotation(blocks), matrices[:, :, 3:] / largest], axis=2)
+
+
 # --- task 2: linear triangulation ------------------------------------------------------------------
 def triangulation_from_two_views(observations, poses, K):
     """Each point from the first two observations of it (in the order of ``observations``), not from all."""
@@ -80,6 +95,26 @@ def triangulation_from_two_views(observations, poses, K):
 def triangulation_without_K(observations, poses, K):
     """``P_v = [R_v | t_v]`` with the pixels as they are: the lab's triangulation given ``K = I``."""
     return sfm_basics.triangulate_points_linear(observations, poses, np.eye(3))
+
+
+def triangulation_y_row_uses_x(observations, poses, K):
+    """Each view's second row built with ``x``: ``x p3 - p2`` (a typo for ``y p3 - p2``): the lab's DLT of the
+    pixels ``(x, x)``."""
+    xx = Points2D(np.repeat(observations.xy[:, :1], 2, axis=1), view=observations.view, ids=observations.ids,
+                  image=observations.image)
+    return sfm_basics.triangulate_points_linear(xx, poses, K)
+
+
+def triangulation_p1_p2_swapped(observations, poses, K):
+    """The rows ``x p3 - p2`` and ``y p3 - p1``: the lab's DLT with the first two rows of every ``P`` swapped."""
+    poses = np.asarray(poses, dtype=np.float64)
+    P = projection_matrix(np.asarray(K, dtype=np.float64), poses[:, :, :3], poses[:, :, 3])[:, [1, 0, 2]]
+    count = int(observations.ids.max()) + 1
+    x = np.zeros((len(poses), count, 2))
+    seen = np.zeros((len(poses), count), dtype=bool)
+    x[observations.view, observations.ids] = observations.xy
+    seen[observations.view, observations.ids] = True
+    return triangulate_dlt(P, x, seen)
 
 
 # --- task 3: the sparsity pattern --------------------------------------------------------------------
@@ -105,3 +140,16 @@ def sparsity_u_rows_only(camera_indices, point_indices, num_cameras, num_points)
     pattern = sfm_basics.jacobian_sparsity(camera_indices, point_indices, num_cameras, num_points)
     pattern[1::2] = False
     return pattern
+
+
+def sparsity_u_then_v_blocks(camera_indices, point_indices, num_cameras, num_points):
+    """Observation ``i``'s rows at ``i`` (u) and ``M + i`` (v): all u residuals, then all v."""
+    pattern = sfm_basics.jacobian_sparsity(camera_indices, point_indices, num_cameras, num_points)
+    return np.concatenate([pattern[0::2], pattern[1::2]])
+
+
+def sparsity_points_before_cameras(camera_indices, point_indices, num_cameras, num_points):
+    """The points' ``3 N`` columns first, then the cameras' ``6 V``: the parameter blocks in the other order."""
+    pattern = sfm_basics.jacobian_sparsity(camera_indices, point_indices, num_cameras, num_points)
+    cameras = sfm_basics.CAMERA_PARAMS * num_cameras
+    return np.concatenate([pattern[:, cameras:], pattern[:, :cameras]], axis=1)

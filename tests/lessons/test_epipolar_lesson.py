@@ -1,5 +1,5 @@
-"""lessons/02-epipolar beyond the generic checks of test_every_lesson.py: correct solutions (the student's own,
-and ones written differently) score full marks on several assignment seeds, the starter scores zero, each
+"""lessons/02-epipolar beyond the generic checks of test_every_lesson.py: correct solutions (the student's
+own, and ones written differently) score full marks on several assignment seeds, the starter scores zero, each
 wrong implementation loses exactly the checks it should with a hint naming its cause (its ``# cause:`` line),
 and the check data decides the rule each check is named for on every seed (lab/data/two_view.py builds it).
 
@@ -32,21 +32,21 @@ FOUR = "The four poses of E"
 CHEIRALITY = "The cheirality test"
 
 DECOMPOSE_EXACT = f"{FOUR}: exact data: the reference's four candidates, in any order"
-FOUR_ROTATION = (f"{FOUR}: data with wrong matches: your candidates, then the lab's cheirality test: the rotation "
-                 "as accurate as the reference's")
+FOUR_ROTATION = (f"{FOUR}: data with wrong matches: your candidates, then the lab's cheirality test: the "
+                 "rotation as accurate as the reference's")
 FOUR_DIRECTION = (f"{FOUR}: data with wrong matches: your candidates, then the lab's cheirality test: the "
                   "direction of t as accurate as the reference's")
 POSE_EXACT = f"{CHEIRALITY}: exact data: the reference's pose"
-POSE_BEHIND = (f"{CHEIRALITY}: wrong matches that lie behind both cameras: the pose with the most points in front "
-               "of both cameras")
+POSE_BEHIND = (f"{CHEIRALITY}: wrong matches that lie behind both cameras: the pose with the most points in "
+               "front of both cameras")
 POSE_INLIERS = f"{CHEIRALITY}: data with wrong matches: the reference's pose (counting RANSAC's inliers only)"
-REFINED_ROTATION = (f"{CHEIRALITY}: data with wrong matches: the rotation refined from your pose, as accurate as "
-                    "the reference's")
+REFINED_ROTATION = (f"{CHEIRALITY}: data with wrong matches: the rotation refined from your pose, as "
+                    "accurate as the reference's")
 REFINED_DIRECTION = (f"{CHEIRALITY}: data with wrong matches: the direction of t refined from your pose, as "
                      "accurate as the reference's")
 
 WRONG = sorted(p.name for p in (SUBMISSIONS / "epipolar").glob("wrong_*.py"))
-CORRECT = ["solution.py"] + sorted(p.name for p in (SUBMISSIONS / "epipolar").glob("correct_*.py"))
+CORRECT = ["solution.py", *sorted(p.name for p in (SUBMISSIONS / "epipolar").glob("correct_*.py"))]
 
 
 @pytest.fixture(scope="module")
@@ -116,7 +116,8 @@ def test_a_student_solution_scores_full_marks_and_grading_time_is_reported(epipo
 def test_a_regrade_gives_the_same_score_and_messages(epipolar_lesson, graded):
     again = grade(epipolar_lesson, submission("epipolar", "wrong_cheirality_camera1_only.py"), seed=SEED)
     first = graded("wrong_cheirality_camera1_only.py")
-    assert [(t.name, t.score, t.output) for t in again.tests] == [(t.name, t.score, t.output) for t in first.tests]
+    assert ([(t.name, t.score, t.output) for t in again.tests]
+            == [(t.name, t.score, t.output) for t in first.tests])
 
 
 # --- correct solutions written differently: full marks on several assignment seeds --------------------------
@@ -128,29 +129,30 @@ def test_correct_solutions_score_full_marks(epipolar_lesson, graded, name, seed)
 
 
 def test_opencvs_decomposition_is_the_same_set_in_another_order():
-    """cv2.decomposeEssentialMat gives the lab's four candidates, in an order set by its SVD's signs (the issue:
-    2 points lost on 84 % of seeds when they were compared in order)."""
+    """cv2.decomposeEssentialMat gives the lab's four candidates, in an order set by its SVD's signs (the
+    issue: 2 points lost on 84 % of seeds when they were compared in order)."""
     import cv2
 
     orders = set()
     for seed in range(30):
         E = correspondences(num_points=20, noise_px=0.0, outlier_rate=0.0, seed=seed).truth["E"]
         R1, R2, t = cv2.decomposeEssentialMat(E)
-        theirs = np.array([np.column_stack([R, s * t.ravel()]) for s, R in ((1, R1), (1, R2), (-1, R1), (-1, R2))])
+        pairs = ((1, R1), (1, R2), (-1, R1), (-1, R2))
+        theirs = np.array([np.column_stack([R, s * t.ravel()]) for s, R in pairs])
         ours = essential_candidates(E)
         assert same_set(theirs, ours, rtol=0.0, atol=1e-8, up_to="exact").passed, seed
         orders.add(tuple(int(np.argmin([np.abs(c - o).max() for o in ours])) for c in theirs))
     assert len(orders) > 1  # the order does differ: comparing in order would fail them
 
 
-# --- the check data decides each rule, on every assignment seed ----------------------------------------------
+# --- the check data decides each rule, on every assignment seed ------------------------------------------
 ASSIGNMENTS = range(12)
 
 
 @pytest.mark.parametrize("assignment", ASSIGNMENTS)
 def test_counting_every_match_picks_another_pose_on_the_voting_variant(epipolar_lesson, assignment):
-    """Variant 2 of ``outliers``: RANSAC rejects the wrong matches, but counted they outvote the right ones for
-    (R, -t) (the issue: a test that ignored the mask scored 20/20)."""
+    """Variant 2 of ``outliers``: RANSAC rejects the wrong matches, but counted they outvote the right ones
+    for (R, -t) (the issue: a test that ignored the mask scored 20/20)."""
     mistakes = epipolar_lesson.mistakes
     session = _data("outliers", 1, assignment, "recover_pose", epipolar_lesson)
     state = session.state
@@ -164,8 +166,9 @@ def test_counting_every_match_picks_another_pose_on_the_voting_variant(epipolar_
 
 @pytest.mark.parametrize("assignment", ASSIGNMENTS)
 def test_one_cameras_depths_pick_a_half_turned_pose_on_the_behind_data(epipolar_lesson, assignment):
-    """The ``behind`` data: wrong matches on their epipolar lines behind both cameras make a test of camera 1 (or
-    camera 2) alone pick a half-turned pose on every seed (the issue: camera 1 only got full marks on 89 %)."""
+    """The ``behind`` data: wrong matches on their epipolar lines behind both cameras make a test of camera 1
+    (or camera 2) alone pick a half-turned pose on every seed (the issue: camera 1 only got full marks on 89 %
+    of seeds)."""
     mistakes = epipolar_lesson.mistakes
     session = _data("behind", 0, assignment, "recover_pose", epipolar_lesson)
     state, truth = session.state, session.truth
@@ -190,7 +193,7 @@ def test_the_given_essential_matrix_has_svd_factors_of_opposite_determinants(epi
         np.sum(session.state["E"] * session.truth["E"])), atol=1e-15)
 
 
-# --- the issue's failures, graded on several assignment seeds ------------------------------------------------
+# --- the issue's failures, graded on several assignment seeds --------------------------------------------
 @pytest.mark.parametrize("seed", [SEED, 3, 4])
 def test_a_test_that_ignores_the_inlier_mask_loses_its_points(epipolar_lesson, graded, seed):
     name = "wrong_cheirality_all_matches.py"
@@ -206,7 +209,8 @@ def test_a_test_of_one_camera_loses_the_behind_check_on_every_seed(epipolar_less
     lost = failed(report)
     assert POSE_BEHIND in lost and report.score <= 19.0
     camera = "camera 1" if "camera1" in name else "camera 2"
-    assert f"your pose is the candidate with the most points in front of {camera}, whatever" in lost[POSE_BEHIND]
+    assert (f"your pose is the candidate with the most points in front of {camera}, whatever"
+            in lost[POSE_BEHIND])
 
 
 @pytest.mark.parametrize("name", ["wrong_decompose_reflections.py", "wrong_decompose_w_unsigned.py"])
@@ -222,12 +226,14 @@ def test_reflections_are_told_as_reflections_and_the_lab_says_what_it_refused(gr
 
 
 def test_w_without_its_minus_gives_reflections_on_every_variant(graded):
-    assert set(failed(graded("wrong_decompose_w_unsigned.py"))) == {DECOMPOSE_EXACT, FOUR_ROTATION, FOUR_DIRECTION}
+    lost = failed(graded("wrong_decompose_w_unsigned.py"))
+    assert set(lost) == {DECOMPOSE_EXACT, FOUR_ROTATION, FOUR_DIRECTION}
 
 
 @pytest.mark.parametrize("seed", [3, 4])
 def test_unfixed_svd_signs_lose_the_decomposition_on_every_seed(epipolar_lesson, seed):
-    """The ``essential`` data's second variant gives factors of opposite determinants: the mistake always shows."""
+    """The ``essential`` data's second variant gives factors of opposite determinants: the mistake always
+    shows."""
     report = grade(epipolar_lesson, submission("epipolar", "wrong_decompose_reflections.py"), seed=seed)
     assert DECOMPOSE_EXACT in failed(report)
 
@@ -239,13 +245,14 @@ def test_the_lab_refuses_reflections_and_evaluations_name_them():
     data = correspondences(num_points=30, noise_px=0.0, outlier_rate=0.0, seed=9)
     x1, x2, K = data.state["x1"], data.state["x2"], data.state["K1"]
     reflected = decompose_essential(data.truth["E"]) * np.array([-1.0, -1.0, -1.0, 1.0])
-    with pytest.raises(InvalidValue, match=r"candidate 0 \(R1 t\): R has det -1: a reflection, not a rotation"):
+    refused = r"candidate 0 \(R1 t\): R has det -1: a reflection, not a rotation"
+    with pytest.raises(InvalidValue, match=refused):
         recover_pose(reflected, x1, x2, K, K)
     with pytest.raises(InvalidValue, match="R has det -1: a reflection, not a rotation, so its angle"):
         evaluate_pose({"pose": reflected[0]}, data.truth)
 
 
-# --- every wrong fixture: exactly its losses, each with a hint of its cause and none other ---------------------
+# --- every wrong fixture: exactly its losses, each with a hint of its cause and none other -----------------
 @pytest.mark.parametrize("name", WRONG)
 def test_every_failed_check_names_its_cause(graded, name):
     lost = failed(graded(name))
@@ -288,7 +295,8 @@ def test_the_reversed_cheirality_sign_is_recognised(graded):
     lost = failed(graded("wrong_cheirality_sign.py"))
     assert set(lost) == {POSE_EXACT, POSE_BEHIND, POSE_INLIERS, REFINED_DIRECTION}
     for check in (POSE_EXACT, POSE_BEHIND):
-        assert "Hint: your test picks the pose with the most points behind both cameras: (R, -t)" in lost[check]
+        assert ("Hint: your test picks the pose with the most points behind both cameras: (R, -t)"
+                in lost[check])
     assert "Is the sign of your depth test reversed" in lost[POSE_INLIERS]
     refined = lost[REFINED_DIRECTION]
     assert ("metric translation_direction_error_deg after running the pipeline to refine_pose on your pose"
@@ -315,8 +323,8 @@ def test_candidates_in_another_order_get_full_marks(epipolar_lesson):
 
 
 def test_the_lessons_conventions_are_the_modules():
-    """What lesson.md and starter.py promise, checked on the module: unit-norm rank-2 F with
-    x2^T F x1 = 0, four candidates with t = U's last column, the pose one of them unchanged, names of the control."""
+    """What lesson.md and starter.py promise, checked on the module: unit-norm rank-2 F with x2^T F x1 = 0,
+    four candidates with t = U's last column, the pose one of them unchanged, names of the control."""
     data = correspondences(num_points=40, noise_px=0.0, outlier_rate=0.0, seed=9)
     x1, x2, K = data.state["x1"], data.state["x2"], data.state["K1"]
     F = eight_point(x1, x2)

@@ -3,12 +3,13 @@ scores full marks (and how long grading takes), and the messages the wrong imple
 what to fix: every check a wrong fixture fails carries the hint of its mistake (lessons/04-sfm/mistakes.py
 and the hints of tasks.toml), and no other mistake's.
 
-Seeds are fixed here (``seed=``) so the tests are reproducible; graded for real, every run draws
-fresh hidden seeds. Each fixture is graded once per module (:func:`graded`).
+Seeds are fixed here (``seed=``: the assignment seed) so the tests are reproducible. Each fixture is graded
+once per module at SEED (:func:`graded`); correct ones, and the new wrong ones, on two more assignment seeds.
 """
 
 from __future__ import annotations
 
+import re
 import time
 
 import numpy as np
@@ -19,10 +20,26 @@ from lab.lessons.grader import grade
 from lab.modules import sfm_basics
 
 from lesson_helpers import (REPO, SUBMISSIONS, assert_every_failure_names_its_mistake, failed, graded_once,
-                            submission)
+                            hint_lines, submission)
 
 SEED = 20240917
 WRONG = sorted(p.name for p in (SUBMISSIONS / "sfm").glob("wrong_*.py"))
+
+NOISY_POSES = ("Linear PnP: noisy data: the reference's poses (Hartley-normalized DLT, R projected onto "
+               "SO(3), t divided by the mean singular value)")
+POSES_BEHIND = "Linear PnP: noisy data: every point in front of the camera that sees it (cheirality)"
+POSES_REFINED = ("Linear PnP: noisy data: the poses refined from yours (non-linear PnP) as close to the "
+                 "truth as the reference's")
+POINTS_EXACT = "Linear triangulation: exact data: the true points"
+NOISY_POINTS = ("Linear triangulation: noisy data: the reference's points (DLT in pixels over every camera "
+                "that sees the point)")
+SPARSITY = "Sparsity pattern of the bundle-adjustment Jacobian: "
+SPARSITY_ALL = {SPARSITY + name for name in (
+    "exact data: the reference's pattern, entry by entry",
+    "noisy data: the reference's pattern, entry by entry",
+    "noisy data: no entry the Jacobian has is left out (each row: its camera's 6 columns and its point's 3)",
+    "noisy data: no entry marked that the Jacobian never has",
+    "noisy data: bundle adjustment with your pattern, final reprojection RMS as the reference's")}
 
 #: The hint (a part of its ``say`` in tasks.toml) every failed check of each wrong fixture must carry.
 HINTS = {
@@ -35,6 +52,24 @@ HINTS = {
     "wrong_triangulation_two_views.py":
         "your points are triangulated from the first two cameras that see them only",
     "wrong_triangulation_without_K.py": "your projection matrices are [R_v | t_v] without K",
+    "wrong_pnp_in_pixels.py": "your poses are what the DLT gives on the pixels as they are",
+    "wrong_pnp_t_over_largest_singular_value.py": "your t is P[:, 3] divided by the largest singular value",
+    "wrong_triangulation_y_row_uses_x.py": "your second row of each view is x p3 - p2",
+    "wrong_triangulation_p1_p2_swapped.py": "your rows pair the pixel coordinates with the wrong rows of P",
+    "wrong_sparsity_u_then_v_blocks.py": "your rows put all u residuals first",
+    "wrong_sparsity_points_before_cameras.py": "your columns put the points first",
+}
+CORRECT = ["solution.py", *sorted(p.name for p in (SUBMISSIONS / "sfm").glob("correct_*.py"))]
+
+#: The checks each new wrong fixture loses, on every assignment seed (the mistake shows on any data).
+LOSES = {
+    "wrong_pnp_in_pixels.py": {"Linear PnP: exact data: the true poses [R | t]", NOISY_POSES, POSES_BEHIND,
+                               POSES_REFINED},
+    "wrong_pnp_t_over_largest_singular_value.py": {NOISY_POSES},
+    "wrong_triangulation_y_row_uses_x.py": {POINTS_EXACT, NOISY_POINTS},
+    "wrong_triangulation_p1_p2_swapped.py": {POINTS_EXACT, NOISY_POINTS},
+    "wrong_sparsity_u_then_v_blocks.py": SPARSITY_ALL,
+    "wrong_sparsity_points_before_cameras.py": SPARSITY_ALL,
 }
 
 
@@ -162,3 +197,52 @@ def test_a_hint_compares_as_it_says_so_right_poses_times_two_get_no_sign_hint(sf
     lost = failed(grade(sfm_lesson, source, seed=SEED))
     assert lost and all(name.startswith("Linear PnP") for name in lost)
     assert not any(HINTS["wrong_sign_from_last_entry.py"] in output for output in lost.values())
+
+
+@pytest.mark.parametrize("name", CORRECT)
+@pytest.mark.parametrize("seed", [SEED, 1, 2])
+def test_correct_solutions_written_differently_score_full_marks(sfm_lesson, graded, name, seed):
+    """The polar decomposition for R, the eigenvectors of A^T A for the null vector, batched SVDs with zero
+    rows, a float or uint8 pattern (scipy.sparse's .toarray()): the same numbers, full marks."""
+    report = graded(name) if seed == SEED else grade(sfm_lesson, submission("sfm", name), seed=seed)
+    assert report.score == 30.0, failed(report)
+
+
+@pytest.mark.parametrize("name", sorted(LOSES))
+@pytest.mark.parametrize("seed", [SEED, 5])
+def test_the_new_mistakes_lose_exactly_their_checks_on_any_seed(sfm_lesson, graded, name, seed):
+    report = graded(name) if seed == SEED else grade(sfm_lesson, submission("sfm", name), seed=seed)
+    assert set(failed(report)) == LOSES[name]
+
+
+@pytest.mark.parametrize("name", WRONG)
+def test_every_failed_check_names_only_the_fixtures_cause(graded, name):
+    """The hint names of each failed check (``[name]`` at the end of a hint line) are among the fixture's
+    ``# cause:`` line."""
+    match = re.search(r"^# cause: (.+)$", submission("sfm", name), re.M)
+    assert match, f"{name} has no # cause: line"
+    allowed = {cause.strip() for cause in match.group(1).split(",")}
+    for check, output in failed(graded(name)).items():
+        names = {line.rsplit("[", 1)[1].rstrip("]") for line in hint_lines(output) if line.endswith("]")}
+        assert names and names <= allowed, f"{check}: {names} outside {allowed}"
+        assert "Not graded" not in output
+
+
+def test_the_new_mistakes_match_the_lessons_own_functions(sfm_lesson):
+    """Each new mistake of mistakes.py differs from the reference on noisy data (so it can name a mistake) and
+    the sparsity mistakes are permutations of the reference's pattern (the same entries, moved)."""
+    mistakes = sfm_lesson.mistakes
+    state = sfm_basics.synthetic(num_points=30, num_views=4, noise_px=1.0, map_noise=0.05, seed=3).state
+    poses = sfm_basics.estimate_poses_linear(state["points3d"], state["observations"], state["K"])
+    for name in ("pnp_in_pixels", "pnp_t_over_largest_singular_value"):
+        got = mistakes[name](state["points3d"], state["observations"], state["K"])
+        assert np.abs(got - poses).max() > 1e-6, name
+    points = sfm_basics.triangulate_points_linear(state["observations"], poses, state["K"])
+    for name in ("triangulation_y_row_uses_x", "triangulation_p1_p2_swapped"):
+        assert np.abs(mistakes[name](state["observations"], poses, state["K"]) - points).max() > 1e-3, name
+    indices = (state["camera_indices"], state["point_indices"], state["num_cameras"], state["num_points"])
+    pattern = sfm_basics.jacobian_sparsity(*indices)
+    for name in ("sparsity_u_then_v_blocks", "sparsity_points_before_cameras"):
+        moved = mistakes[name](*indices)
+        assert moved.shape == pattern.shape and moved.sum() == pattern.sum()
+        assert not np.array_equal(moved, pattern)
