@@ -201,6 +201,7 @@ def procedural(*, pattern: Pattern = "blobs", size: Annotated[int, Range(8, 512)
                period_px: Annotated[float, Range(2.0, 128.0)] = 8.0,
                orientation_deg: Annotated[float, Range(-180.0, 180.0)] = 30.0,
                target: Target = "gradient", target_size: Annotated[int, Range(16, 512)] = 64,
+               quantize: Annotated[int, Range(0, 256)] = 0,
                seed: Annotated[int, Range(0, 2**31 - 1)] = 0) -> Loaded:
     """A procedural texture with known statistics (truth: ``mean``, ``std``; stripes also ``period_px`` and
     ``orientation_deg``).
@@ -217,6 +218,11 @@ def procedural(*, pattern: Pattern = "blobs", size: Annotated[int, Range(8, 512)
         orientation_deg: direction of the stripes' wave vector, degrees from the x axis.
         target: the picture texture transfer redraws with the sample.
         target_size: side of the transfer target in pixels.
+        quantize: round every pixel value to a multiple of ``1 / quantize`` (0: keep them continuous).
+            With a power of two every squared difference of two pixels, and every sum of them, is
+            exact in floating point, so paths of equal error tie exactly, as they do often in 8-bit
+            photographs (the brick texture's overlaps): data that exercises a tie rule. The truth
+            stays the continuous process's statistics.
         seed: seed of the random draw.
     """
     rng = np.random.default_rng(int(seed))
@@ -233,11 +239,15 @@ def procedural(*, pattern: Pattern = "blobs", size: Annotated[int, Range(8, 512)
             pixels = np.stack(channels, axis=2)
     else:
         pixels = gray
+    rounded = ""
+    if int(quantize):
+        pixels = np.clip(np.rint(pixels * int(quantize)) / int(quantize), 0.0, 1.0)
+        rounded = f", values rounded to multiples of 1/{int(quantize)}"
     return Loaded(state={"sample": Image(pixels.astype(np.float32), name=f"{pattern}"),
                          "transfer_target": transfer_target(target, int(target_size), colour=bool(colour))},
                   truth=truth,
                   description=f"procedural {pattern}, {size} x {size}, "
-                              f"{'colour' if colour else 'grayscale'}, seed {seed}")
+                              f"{'colour' if colour else 'grayscale'}{rounded}, seed {seed}")
 
 
 __all__ = ["SKIMAGE_TEXTURES", "brick", "grass", "gravel", "image_file", "procedural", "procedural_pixels",

@@ -54,9 +54,16 @@ def gaussian_window(window: int, *, sigma_fraction: float = SIGMA_FRACTION) -> n
 
 def candidates_within(distances: np.ndarray, epsilon: float) -> np.ndarray:
     """Flat indices of the entries within ``(1 + epsilon)`` of the smallest (Efros & Leung 1999,
-    section 2.1)."""
+    section 2.1): those at most ``best + epsilon |best|``.
+
+    For a distance (never negative) that is ``best (1 + epsilon)``; written with ``|best|`` so that
+    the smallest entry is always a candidate, also when it is a rounding-level negative such as an
+    expanded SSD (``q^2 - 2 q s + s^2``) gives where two windows agree (``best (1 + epsilon)`` would
+    then lie *below* it and keep nothing). Never empty for a non-empty, finite array.
+    """
     flat = np.asarray(distances, dtype=np.float64).ravel()
-    return np.flatnonzero(flat <= flat.min() * (1.0 + epsilon))
+    best = flat.min()
+    return np.flatnonzero(flat <= best + epsilon * abs(best))
 
 
 def pick_candidate(candidates: np.ndarray, uniform: float) -> int:

@@ -135,9 +135,44 @@ class WindowMatch:
     candidates: int = metric("windows within (1 + epsilon) of the best")
 
 
+#: Negative distances down to this share of the largest distance are rounding, not a mistake: an
+#: expanded SSD (``q^2 - 2 q s + s^2``) in float64 is off by about 1e-16 of it, in float32 (e.g.
+#: ``cv2.matchTemplate``) by about 2e-6.
+ROUNDING_NEGATIVE = 1e-5
+
+
+def checked_distances(window_distances: Any) -> np.ndarray:
+    """``window_distances`` as a float64 ``(rows, cols)`` array with rounding-level negatives set to 0.
+
+    A weighted sum of squared differences is never negative; a distance computed by expanding the
+    square comes out slightly negative where two windows agree (-5.7e-17). Entries down to
+    :data:`ROUNDING_NEGATIVE` times the largest ``|distance|`` (or 1e-12) are therefore read as 0;
+    anything more negative, NaN or infinity is refused with an :class:`InvalidValue` naming it.
+    """
+    distances = np.asarray(window_distances, dtype=np.float64)
+    if distances.ndim != 2 or distances.size == 0:
+        raise InvalidValue("window_distances", f"must be a 2D array (one distance per sample window), got "
+                                               f"shape {distances.shape}")
+    bad = ~np.isfinite(distances)
+    if bad.any():
+        raise InvalidValue("window_distances", f"holds {int(np.isnan(distances).sum())} NaN and "
+                                               f"{int(np.isinf(distances).sum())} infinite entries of "
+                                               f"{distances.size}: every window needs a finite distance")
+    smallest = float(distances.min())
+    rounding = max(ROUNDING_NEGATIVE * float(np.abs(distances).max()), 1e-12)
+    if smallest < -rounding:
+        raise InvalidValue("window_distances", f"has negative entries, the smallest {smallest:.3g} (beyond "
+                                               f"rounding: -{rounding:.2g}); a weighted sum of squared "
+                                               "differences is never negative")
+    return np.maximum(distances, 0.0)
+
+
 def match_window(sample: Image, window_distances: np.ndarray, *,
                  epsilon: Annotated[float, Range(0.0, 1.0)] = 0.1, rng: np.random.Generator) -> WindowMatch:
     """Keep the windows within ``(1 + epsilon)`` of the best and draw one (Efros & Leung 1999, section 2.1).
+
+    Rounding-level negative distances (an expanded SSD's, where the query's own window is compared)
+    count as 0; larger negatives, NaN and infinity are refused (:func:`checked_distances`).
 
     Args:
         epsilon: relative tolerance above the best distance.
@@ -146,9 +181,7 @@ def match_window(sample: Image, window_distances: np.ndarray, *,
     top-left ``(row, col)``.
     """
     sample = as_image(sample, "sample")
-    distances = np.asarray(window_distances, dtype=np.float64)
-    if distances.ndim != 2 or distances.size == 0 or not np.all(np.isfinite(distances)):
-        raise InvalidValue("window_distances", f"must be a finite 2D array, got shape {distances.shape}")
+    distances = checked_distances(window_distances)
     half = (sample.height - distances.shape[0]) // 2
     chosen_flat = candidates_within(distances, epsilon)
     rows, cols = np.unravel_index(chosen_flat, distances.shape)
