@@ -463,7 +463,7 @@ class Grader:
         problem = checks_module.structure_problem(got, expected, what=f"{task.step}'s {value_name}")
         if problem:
             return (f"Your function returned a value of the wrong form: {problem}."
-                    + messages.structure_hint(got, expected)), False
+                    + self._form_hints(task, where, params, got, expected)), False
         outcome = self._compare(check, got, expected)
         hints = [] if outcome.passed else self._hints(task, check, student, reference, params, got, expected,
                                                       where)
@@ -478,7 +478,7 @@ class Grader:
         problem = checks_module.structure_problem(got_out, expected_out, what=f"{task.step}'s {first}")
         if problem:
             return ("The rest of the pipeline was not run: your function returned a value of the wrong "
-                    f"form: {problem}." + messages.structure_hint(got_out, expected_out)), False
+                    f"form: {problem}." + self._form_hints(task, where, params, got_out, expected_out)), False
         until = check.until or self.pipeline.steps[-1].name
         student_after = self._downstream(student, until)
         if isinstance(student_after, str):
@@ -737,6 +737,23 @@ class Grader:
             if alternative is not None:
                 partial.append((mutant, alternative))
         return messages.partial_match(partial, got_array, expected_array)
+
+    def _form_hints(self, task: Task, where: tuple[str, int], params: dict[str, Any], got: Any,
+                    expected: Any) -> str:
+        """Hint lines for a value of the wrong form: a function of mistakes.py that returns the same shape and
+        values (one disparity short, one row too many), else what the shape or the NaN suggests."""
+        finite = isinstance(got, np.ndarray) and got.dtype.kind in "biuf" and bool(np.all(np.isfinite(got)))
+        if finite and got.shape != np.shape(_primary_or_self(expected)):
+            for name in self.lesson.mistakes:
+                if not _takes_parameters_of(self.lesson.mistakes[name], self.pipeline.step(task.step)):
+                    continue
+                alternative = _primary_or_self(self._alternative_value(task, where, params, name))
+                if not isinstance(alternative, np.ndarray) or alternative.shape != got.shape:
+                    continue
+                scale = float(np.abs(alternative).max()) if alternative.size else 1.0
+                if np.allclose(got, alternative, rtol=1e-4, atol=1e-6 * scale):  # a shape the reference lacks
+                    return messages.hints_text([Hint(name, self._mistake_text(name))])
+        return messages.structure_hint(got, expected)
 
     def _alternative_value(self, task: Task, where: tuple[str, int], params: dict[str, Any],
                            name: str) -> Any:
