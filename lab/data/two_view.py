@@ -296,15 +296,11 @@ def correspondences(*, num_points: Annotated[int, Range(8, 20000)] = 400,
     ``structure`` "plane" puts all points on one tilted plane and "line" on one 3D line, and
     ``baseline = 0`` makes a pure rotation: the degenerate inputs for which F is not determined.
 
-    Two options build wrong matches that decide a cheirality test (both replace both pixels of a match, drawn
-    with their own random stream so the other options' data stay the same):
-    ``outlier_placement = "reversed_pose"`` puts each wrong match 30 to 80 px off its epipolar line where,
-    triangulated with the reversed pose ``(R, -t)``, it lies in front of both cameras
-    (:func:`reversed_pose_outliers`): RANSAC rejects them, a test that counts them too votes for ``(R, -t)``.
-    ``behind_rate`` replaces that fraction of the right matches by wrong matches on their epipolar lines,
-    with the same pixel noise, that lie behind both cameras of the true pose and in front of one camera only
-    of a half-turned pose (:func:`behind_matches`): RANSAC keeps them, a test of one camera's depths picks a
-    half-turned pose.
+    Two options build wrong matches that decide a cheirality test (both pixels of a match replaced, from a
+    random stream of their own: the other options' data stay the same): ``outlier_placement =
+    "reversed_pose"`` (:func:`reversed_pose_outliers`: RANSAC rejects them, a test that counts them too votes
+    for ``(R, -t)``) and ``behind_rate`` (:func:`behind_matches`: on their epipolar lines, so RANSAC keeps
+    them, behind both cameras: a test of one camera's depths picks a half-turned pose).
 
     Args:
         num_points: number of matches.
@@ -338,44 +334,16 @@ def correspondences(*, num_points: Annotated[int, Range(8, 20000)] = 400,
     (M,) bool (every wrong match, those of ``behind_rate`` too), ``keypoint_track`` (2M,) the point each
     keypoint observes (-1 for a wrong point).
     """
-    if num_points < 8:
-        raise InvalidValue("num_points", f"needs at least 8 matches, got {num_points}")
-    if not (0 <= cx < width and 0 <= cy < height):
-        raise InvalidValue("cx", f"the principal point ({cx}, {cy}) must lie inside the {width}x{height} "
-                                 "image")
-    if structure == "volume" and depth_range >= 2 * distance:
-        raise InvalidValue("depth_range", f"must be less than twice the distance ({2 * distance:g}) so that "
-                                          "every point lies in front of camera 1")
     built = outlier_placement != "uniform" or behind_rate > 0
-    if built and (baseline <= 0 or structure != "volume"):
-        raise InvalidValue("behind_rate" if behind_rate > 0 else "outlier_placement",
-                           "wrong matches built for the cheirality test need a baseline and a volume scene")
-    if outlier_rate + behind_rate > 0.9:
-        raise InvalidValue("behind_rate", f"outlier_rate + behind_rate must be at most 0.9, got "
-                                          f"{outlier_rate + behind_rate:g}")
+    _check_options(num_points, width, height, cx, cy, structure, distance, depth_range, baseline, built,
+                   outlier_rate, behind_rate)
     rng = np.random.default_rng(seed)
     K = intrinsics(fx, fy, cx, cy)
     R, t = relative_pose(baseline, distance, rng, forward=motion == "forward")
     half_width = distance * max(cx, width - 1 - cx) / fx
     half_height = distance * max(cy, height - 1 - cy) / fy
-    border = 4.0
-    points = np.zeros((0, 3))
-    for _attempt in range(50):
-        candidates = _sample_structure(structure, 4 * num_points, distance, depth_range, half_width,
-                                       half_height, rng)
-        depth2 = candidates @ R[2] + t[2]
-        p1 = project_points(candidates, K, None, np.eye(3), np.zeros(3))
-        p2 = project_points(candidates, K, None, R, t)
-        inside = (candidates[:, 2] > 1e-3 * distance) & (depth2 > 1e-3 * distance)
-        for p in (p1, p2):
-            inside &= (p[:, 0] >= border) & (p[:, 0] <= width - 1 - border)
-            inside &= (p[:, 1] >= border) & (p[:, 1] <= height - 1 - border)
-        points = np.concatenate([points, candidates[inside]])[:num_points]
-        if len(points) == num_points:
-            break
-    else:
-        raise InvalidValue("baseline", f"found only {len(points)} of {num_points} points seen by both "
-                                       "cameras; lower the baseline or raise the distance")
+    scene = _Scene(K, R, t, distance, depth_range, half_width, half_height, width, height, border=4.0)
+    points = _visible_points(scene, structure, num_points, rng)
     exact1 = project_points(points, K, None, np.eye(3), np.zeros(3))
     exact2 = project_points(points, K, None, R, t)
     x1 = exact1 + rng.normal(0.0, noise_px, exact1.shape) if noise_px > 0 else exact1.copy()
@@ -383,16 +351,10 @@ def correspondences(*, num_points: Annotated[int, Range(8, 20000)] = 400,
     F = fundamental_from_pose(K, K, R, t) if baseline > 0 else np.zeros((3, 3))
     outliers = np.zeros(num_points, dtype=bool)
     outliers[rng.choice(num_points, round(outlier_rate * num_points), replace=False)] = True
-    wrong = np.flatnonzero(outliers)
-    while len(wrong):
-        x2[wrong] = rng.uniform([border, border], [width - 1 - border, height - 1 - border], (len(wrong), 2))
-        far = (np.linalg.norm(x2[wrong] - exact2[wrong], axis=1) > 10.0)
-        if baseline > 0:
-            far &= _line_distance(F, exact1[wrong], x2[wrong]) > 10.0
-        wrong = wrong[~far]
+    _place_uniform_outliers(scene, x2, exact1, exact2, np.flatnonzero(outliers), F if baseline > 0 else None,
+                            rng)
     replaced = np.zeros(num_points, dtype=bool)  # both pixels of the match replaced by a built wrong match
     if built:
-        scene = _Scene(K, R, t, distance, depth_range, half_width, half_height, width, height, border)
         replaced = _build_wrong_matches(scene, x1, x2, exact1, exact2, outliers, outlier_placement,
                                         round(behind_rate * num_points), noise_px,
                                         np.random.default_rng([seed, 2]))
@@ -415,14 +377,65 @@ def correspondences(*, num_points: Annotated[int, Range(8, 20000)] = 400,
         state["E"] = essential_with_opposite_dets(skew(direction) @ R)
     truth = {"K1": K, "K2": K.copy(), "R": R, "t": t, "F": F, "E": skew(direction) @ R, "points3d": points,
              "x1_exact": exact1, "x2_exact": exact2, "outliers": outliers, "keypoint_track": track}
+    placed = (" placed to vote for the reversed pose" if outlier_placement == "reversed_pose" else "") + (
+        f", {behind_rate:.0%} on their epipolar lines behind both cameras" if behind_rate else "")
     description = (f"Synthetic correspondences: {num_points} points ({structure}) at {distance:g} +- "
                    f"{depth_range / 2:g}, baseline {baseline:g} ({motion}), noise {noise_px:g} px, "
-                   f"{int(outliers.sum())} wrong matches ({outlier_rate:.0%}"
-                   + (" placed to vote for the reversed pose" if outlier_placement == "reversed_pose" else "")
-                   + (f", {behind_rate:.0%} on their epipolar lines behind both cameras" if behind_rate
-                      else "")
-                   + f"), {width}x{height} px, fx={fx:g}")
+                   f"{int(outliers.sum())} wrong matches ({outlier_rate:.0%}{placed}), {width}x{height} px, "
+                   f"fx={fx:g}")
     return Loaded(state, truth, description)
+
+
+def _check_options(num_points: int, width: int, height: int, cx: float, cy: float, structure: str,
+                   distance: float, depth_range: float, baseline: float, built: bool, outlier_rate: float,
+                   behind_rate: float) -> None:
+    """The option combinations :func:`correspondences` refuses, each named."""
+    if num_points < 8:
+        raise InvalidValue("num_points", f"needs at least 8 matches, got {num_points}")
+    if not (0 <= cx < width and 0 <= cy < height):
+        raise InvalidValue("cx", f"the principal point ({cx}, {cy}) must lie inside the {width}x{height} "
+                                 "image")
+    if structure == "volume" and depth_range >= 2 * distance:
+        raise InvalidValue("depth_range", f"must be less than twice the distance ({2 * distance:g}) so that "
+                                          "every point lies in front of camera 1")
+    if built and (baseline <= 0 or structure != "volume"):
+        raise InvalidValue("behind_rate" if behind_rate > 0 else "outlier_placement",
+                           "wrong matches built for the cheirality test need a baseline and a volume scene")
+    if outlier_rate + behind_rate > 0.9:
+        raise InvalidValue("behind_rate", f"outlier_rate + behind_rate must be at most 0.9, got "
+                                          f"{outlier_rate + behind_rate:g}")
+
+
+def _visible_points(scene: _Scene, structure: str, count: int, rng: np.random.Generator) -> np.ndarray:
+    """``count`` points ``(count, 3)`` of ``structure`` in front of both cameras and seen in both images."""
+    points = np.zeros((0, 3))
+    for _attempt in range(50):
+        candidates = _sample_structure(structure, 4 * count, scene.distance, scene.depth_range,
+                                       scene.half_width, scene.half_height, rng)
+        depth2 = candidates @ scene.R[2] + scene.t[2]
+        p1 = project_points(candidates, scene.K, None, np.eye(3), np.zeros(3))
+        p2 = project_points(candidates, scene.K, None, scene.R, scene.t)
+        inside = (candidates[:, 2] > 1e-3 * scene.distance) & (depth2 > 1e-3 * scene.distance)
+        inside &= scene.inside(p1) & scene.inside(p2)
+        points = np.concatenate([points, candidates[inside]])[:count]
+        if len(points) == count:
+            return points
+    raise InvalidValue("baseline", f"found only {len(points)} of {count} points seen by both cameras; lower "
+                                   "the baseline or raise the distance")
+
+
+def _place_uniform_outliers(scene: _Scene, x2: np.ndarray, exact1: np.ndarray, exact2: np.ndarray,
+                            wrong: np.ndarray, F: np.ndarray | None, rng: np.random.Generator) -> None:
+    """Replace ``x2`` of the matches ``wrong`` (in place) by points drawn uniformly over image 2, at least
+    10 px from the true point and (given ``F``) from its epipolar line."""
+    border = scene.border
+    while len(wrong):
+        x2[wrong] = rng.uniform([border, border], [scene.width - 1 - border, scene.height - 1 - border],
+                                (len(wrong), 2))
+        far = (np.linalg.norm(x2[wrong] - exact2[wrong], axis=1) > 10.0)
+        if F is not None:
+            far &= _line_distance(F, exact1[wrong], x2[wrong]) > 10.0
+        wrong = wrong[~far]
 
 
 def _build_wrong_matches(scene: _Scene, x1: np.ndarray, x2: np.ndarray, exact1: np.ndarray,

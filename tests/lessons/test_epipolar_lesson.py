@@ -40,8 +40,6 @@ POSE_EXACT = f"{CHEIRALITY}: exact data: the reference's pose"
 POSE_BEHIND = (f"{CHEIRALITY}: wrong matches that lie behind both cameras: the pose with the most points in "
                "front of both cameras")
 POSE_INLIERS = f"{CHEIRALITY}: data with wrong matches: the reference's pose (counting RANSAC's inliers only)"
-REFINED_ROTATION = (f"{CHEIRALITY}: data with wrong matches: the rotation refined from your pose, as "
-                    "accurate as the reference's")
 REFINED_DIRECTION = (f"{CHEIRALITY}: data with wrong matches: the direction of t refined from your pose, as "
                      "accurate as the reference's")
 
@@ -191,6 +189,33 @@ def test_the_given_essential_matrix_has_svd_factors_of_opposite_determinants(epi
     assert np.linalg.det(U) * np.linalg.det(Vt) < 0
     np.testing.assert_allclose(session.state["E"], session.truth["E"] * np.sign(
         np.sum(session.state["E"] * session.truth["E"])), atol=1e-15)
+
+
+def test_the_built_wrong_matches_leave_the_other_options_data_as_they_were():
+    """The cheirality options draw from their own random stream: the right matches, the pose and the noise of
+    a seed stay those of the plain data, and every replaced match is marked wrong in the truth."""
+    from lab.data.two_view import pose_candidates
+    from lab.geometry.rotations import skew
+
+    plain = correspondences(num_points=200, noise_px=1.0, outlier_rate=0.0, seed=4)
+    built = correspondences(num_points=200, noise_px=1.0, outlier_rate=0.0, behind_rate=0.4, seed=4)
+    np.testing.assert_array_equal(built.truth["R"], plain.truth["R"])
+    right = ~built.truth["outliers"]
+    assert right.sum() == 120
+    np.testing.assert_array_equal(built.state["x1"][right], plain.state["x1"][right])
+    np.testing.assert_array_equal(built.state["x2"][right], plain.state["x2"][right])
+    track = built.truth["keypoint_track"]
+    assert np.all(track[:200][~right] == -1) and np.all(track[200:][~right] == -1)
+    E = skew(plain.truth["t"]) @ plain.truth["R"]
+    for R, t in pose_candidates(plain.truth["R"], plain.truth["t"]).values():  # four poses of one E
+        other = skew(t) @ R
+        assert min(np.abs(other - E).max(), np.abs(other + E).max()) < 1e-12
+
+
+@pytest.mark.parametrize("seed", [3, 4, 5])
+def test_opencvs_decomposition_keeps_full_marks_on_more_seeds(epipolar_lesson, seed):
+    report = grade(epipolar_lesson, submission("epipolar", "correct_decompose_opencv.py"), seed=seed)
+    assert report.score == 20.0, failed(report)
 
 
 # --- the issue's failures, graded on several assignment seeds --------------------------------------------
