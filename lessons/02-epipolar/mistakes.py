@@ -14,12 +14,13 @@ from lab.modules.epipolar import design_matrix, enforce_rank2, essential_candida
 
 
 # --- task 1: the 8-point algorithm ---------------------------------------------------------------
-def _solved(x1, x2, normalize):
+def _solved(pixels1, pixels2, normalized):
     """``T1``, ``T2`` and the least-squares ``F_n`` (rank 3) of the normalized (or raw) matches, as the lab's
-    :func:`lab.modules.epipolar.eight_point` computes them before rank 2 and denormalization."""
-    x1, x2 = np.asarray(x1, dtype=np.float64), np.asarray(x2, dtype=np.float64)
-    T1, n1 = hartley_normalization(x1) if normalize else (np.eye(3), x1)
-    T2, n2 = hartley_normalization(x2) if normalize else (np.eye(3), x2)
+    :func:`lab.modules.epipolar.eight_point` computes them before rank 2 and denormalization (a helper: its
+    parameters are not the step's, so it is no mistake of its own)."""
+    x1, x2 = np.asarray(pixels1, dtype=np.float64), np.asarray(pixels2, dtype=np.float64)
+    T1, n1 = hartley_normalization(x1) if normalized else (np.eye(3), x1)
+    T2, n2 = hartley_normalization(x2) if normalized else (np.eye(3), x2)
     f = np.linalg.svd(design_matrix(n1, n2))[2][-1]
     return T1, T2, f.reshape(3, 3)
 
