@@ -178,16 +178,18 @@ def same_set(got: np.ndarray, expected: np.ndarray, *, rtol: float = 1e-6, atol:
         return Outcome(False, f"{len(g)} items of size {g.shape[1]}; expected {len(e)} of size {e.shape[1]}")
     scale = np.maximum(atol + rtol * np.abs(e), 1e-300)  # per expected entry
 
-    def excess(gi: np.ndarray, ei: np.ndarray, allowed: np.ndarray) -> float:
-        candidates = [gi]
-        if up_to == "sign":
-            candidates.append(-gi)
+    def excess(gi: np.ndarray) -> np.ndarray:
+        """How far item ``gi`` is from every expected item, in units of the allowed difference: ``(M,)``."""
         if up_to == "scale":
             norm = float(gi @ gi)
-            candidates = [gi * (float(gi @ ei) / norm)] if norm else [gi]
-        return min(float(np.max(np.abs(c - ei) / allowed)) for c in candidates)
+            candidates = [np.outer(e @ gi / norm, gi)] if norm else [np.broadcast_to(gi, e.shape)]
+        else:
+            candidates = [np.broadcast_to(gi, e.shape)]
+            if up_to == "sign":
+                candidates.append(np.broadcast_to(-gi, e.shape))
+        return np.min([np.max(np.abs(c - e) / scale, axis=1) for c in candidates], axis=0)
 
-    cost = np.array([[excess(gi, ei, s) for ei, s in zip(e, scale, strict=True)] for gi in g])
+    cost = np.stack([excess(gi) for gi in g])  # (M, M): got item i against expected item j
     rows, cols = linear_sum_assignment(np.minimum(cost, 1e300))
     worst = int(np.argmax(cost[rows, cols]))
     ratio = float(cost[rows[worst], cols[worst]])
@@ -455,7 +457,7 @@ def entry_not(got: np.ndarray, expected: np.ndarray, *, index: list[int], value:
 def permuted(got: np.ndarray, expected: np.ndarray, *, rtol: float = 1e-3) -> str | None:
     """Every item of the stack matches a different expected item (exactly, not up to sign or scale), but in
     another order."""
-    if got.shape != expected.shape or got.ndim < 2 or len(got) < 2:
+    if got.shape != expected.shape or got.ndim < 2 or not 2 <= len(got) <= 1000:
         return None
     if allclose(got, expected, rtol=rtol, atol=1e-9).passed:
         return None

@@ -143,8 +143,8 @@ class CheckDataset:
     params: dict[str, dict[str, Any]] = field(default_factory=dict)
     variants: tuple[DataVariant, ...] = (DataVariant(),)
 
-    def describe(self, variant: int = 0) -> str:
-        """How the data (of ``variant``) is described to students."""
+    def describe(self, variant: int = 0, *, numbered: bool = True) -> str:
+        """How the data (of ``variant``) is described to students (``numbered``: with "variant k of K")."""
         with_options = f" with {self.options}" if self.options else ""
         text = self.description or f"dataset {self.dataset!r}" + with_options
         chosen = self.variants[variant]
@@ -152,7 +152,7 @@ class CheckDataset:
             text += f"; {chosen.description}"
         elif chosen.options:
             text += f"; with {chosen.options}"
-        if len(self.variants) > 1:
+        if numbered and len(self.variants) > 1:
             text += f" (variant {variant + 1} of {len(self.variants)})"
         return text
 

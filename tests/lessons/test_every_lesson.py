@@ -144,18 +144,18 @@ def test_wrong_implementation_loses_exactly_its_checks(lessons, graded, folder, 
 def test_at_least_80_percent_of_the_failed_checks_name_the_cause(graded):
     """Across every lesson's wrong fixtures: the share of failed checks whose hints include one of the
     fixture's causes (and, by the test above, no other)."""
-    named, failed_checks, unnamed = 0, 0, []
+    naming, failed_checks, unnamed = 0, 0, []
     for folder, fixture in CASES:
         assert causes(fixture), f"{fixture}: give a line '# cause: <hint name>, ...'"
         for test in graded(folder, fixture).tests:
             if test.status == "failed":
                 failed_checks += 1
                 if named(test.hints, fixture):
-                    named += 1
+                    naming += 1
                 else:
                     unnamed.append(f"{fixture.parent.name}/{fixture.name}: {test.name} {list(test.hints)}")
-    print(f"\n{named} of {failed_checks} failed checks name their cause; not named: {unnamed}")
-    assert named >= 0.8 * failed_checks, unnamed
+    print(f"\n{naming} of {failed_checks} failed checks name their cause; not named: {unnamed}")
+    assert naming >= 0.8 * failed_checks, unnamed
 
 
 CORRECT = [(folder, fixture) for folder in LESSON_FOLDERS for fixture in correct_fixtures(folder)]
