@@ -147,8 +147,11 @@ def variants_text(data: CheckDataset, bodies: dict[int, tuple[str, bool]]) -> st
         by_body.setdefault(bodies[k][0], []).append(k)
     for body, variants in by_body.items():
         which = ", ".join(str(k + 1) for k in variants)
+        if len(variants) == 1:
+            lines.append(f"Variant {which}: {data.describe(variants[0])}\n{body}")
+            continue
         described = "\n".join(f"  variant {k + 1}: {data.describe(k, numbered=False)}" for k in variants)
-        lines.append(f"Variant{'s' if len(variants) > 1 else ''} {which}:\n{described}\n{body}")
+        lines.append(f"Variants {which}:\n{described}\n{body}")
     return "\n".join(lines)
 
 
