@@ -48,6 +48,12 @@ class CameraFramer:
         """Point the camera at the 3D content the first time there is some (y down: the OpenCV convention)."""
         if self.framed or not self.is_client:
             return
+        self.fit(state, interactions)
+
+    def fit(self, state: Mapping[str, Any], interactions: Iterable[Interaction]) -> None:
+        """Point the camera at all the 3D content now (the "Fit view" button), whatever was done before."""
+        if not self.is_client:
+            return
         view = framing(state, interactions)
         if view is None:
             return

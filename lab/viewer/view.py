@@ -29,6 +29,7 @@ from lab.core.errors import LabError, UnknownName
 from lab.core.pipeline import DatasetSpec, Plan, RunRecord, Session, StepParams
 from lab.core.store import SessionStore
 from lab.viewer.camera import CameraFramer, framing
+from lab.viewer.legend import ScenePanel
 from lab.viewer.catalog import ModuleCatalog
 from lab.viewer.gui import StepRow, build_step_rows, build_tab_gui
 from lab.viewer.interactions import Interaction, InteractionContext, interactions_for
@@ -88,6 +89,7 @@ class ClientView:
         self.runner = Runner(background=background, show_error=self.show_error,
                              refresh=lambda: self.refresh(force=True), mark=self._mark)
         self.camera = CameraFramer(target, is_client=is_client)
+        self.scene_panel = ScenePanel(self.gui, on_fit=lambda: self.guard(self.fit_view))
         self._wire()
         self._module_changed()
         self.lesson_mode: LessonMode | None = None
@@ -556,6 +558,13 @@ class ClientView:
             self.tab.media_panel.visible = any(not r.in_scene for r in map(renderer_for, state.values())
                                                if r is not None)
             self.camera.frame(state, self.interactions)
+            self.scene_panel.show(state, _producers(session, state))
+
+    def fit_view(self) -> None:
+        """The "Fit view" button: the camera pointed at everything drawn in 3D."""
+        with self.lock:
+            if self.session is not None:
+                self.camera.fit(dict(self.session.state), self.interactions)
 
     def _show_metrics(self, session: Session, metrics: Mapping[str, Mapping[str, Any]],
                       history: list[RunRecord]) -> None:
@@ -627,3 +636,12 @@ class ClientView:
 
 
 __all__ = ["ClientView", "ParamsSource"]
+
+
+def _producers(session: Session, state: Mapping[str, Any]) -> dict[str, str]:
+    """The step that wrote each state value (the legend names it), "" for the dataset's."""
+    found = {}
+    for name in state:
+        spec = session.pipeline.producer(name)
+        found[name] = spec.name if spec is not None else "dataset"
+    return found
