@@ -1,10 +1,15 @@
-"""Progress of long (generator) steps in a tab: the text, the bar, the live loss plot and Cancel.
+"""Progress of long (generator) steps in a tab: in the running step's own folder, and in the tab title.
 
 A :class:`ProgressPanel` listens to a session (``session.listeners``): every
 :class:`~lab.core.step.Progress` snapshot of a long step (run by this tab, or by a REST call on the
-same session) updates the panel at most every :data:`PROGRESS_SECONDS`, and a snapshot's preview
-values (``Progress.values``) are handed to ``preview`` at most every :data:`PREVIEW_SECONDS`. When
-the step ends, :meth:`ProgressPanel.finish` shows how (it may stop early, converged).
+same session) updates that step's progress widgets (text, bar, live loss plot, Cancel: a
+:class:`~lab.viewer.gui.StepProgressGui` below the step's Run buttons, where the user pressed Run) and
+the browser tab's title (``▶ refine 7/100 — Vision Lab``) at most every :data:`PROGRESS_SECONDS`; a
+snapshot's preview values (``Progress.values``) are handed to ``preview`` at most every
+:data:`PREVIEW_SECONDS`. When the step ends, :meth:`ProgressPanel.finish` shows how (it may stop
+early, converged) and the title is plain again. A finished run's progress stays in its step's folder
+only while the step's status is the one the run left: once the step is reset (or re-labelled stale,
+seen at the next refresh) it is hidden, so it never contradicts the step's label.
 """
 
 from __future__ import annotations
@@ -19,29 +24,35 @@ import numpy as np
 
 from lab.core.pipeline import RunRecord
 from lab.core.step import Progress
-from lab.viewer.gui import TabGui
+from lab.viewer.gui import PLAIN_TITLE, StepProgressGui, TabGui
+from lab.viewer.plots import chart_axes
 from lab.viewer.text import format_number
 
 #: Minimum time between two GUI updates from progress snapshots (and between two preview draws).
 PROGRESS_SECONDS = 0.1
 PREVIEW_SECONDS = 0.5
+#: Minimum time between two tab titles of a running step (each is a line of JavaScript viser never culls).
+TITLE_SECONDS = 1.0
 
 
 @dataclass
 class ProgressState:
-    """What the panel shows of the current long step: its snapshots' losses, the bar and the message."""
+    """What is shown of one long step's run: its snapshots' losses, the bar and the message; ``label``
+    is its folder's label when the run ended (the step's status then)."""
 
     step: str | None = None
     iteration: int = -1
+    total: int | None = None
     x: list[float] = field(default_factory=list)
     y: list[float] = field(default_factory=list)
     shown: float = 0.0
     preview: float = 0.0
     finished: bool = False
-    log: bool = False
     fraction: float = 0.0
     animated: bool = False
     message: str = ""
+    label: str | None = None
+    titled: float = -1e9
 
 
 def progress_message(step: str, progress: Progress) -> str:
@@ -52,28 +63,52 @@ def progress_message(step: str, progress: Progress) -> str:
     return f"**{step}**: iteration {progress.iteration}{f'/{total}' if total else ''}{loss}{note}"
 
 
+def running_title(step: str, iteration: int, total: int | None) -> str:
+    """The tab title while ``step`` runs: ``▶ step 7/100 — Vision Lab``."""
+    count = f"{iteration}/{total}" if total else f"{iteration}"
+    return f"▶ {step} {count} — {PLAIN_TITLE}"
+
+
 class ProgressPanel:
-    """The Progress folder of one tab (see the module docstring). ``lock`` is the tab's; ``preview(values)``
-    draws a snapshot's preview values over the session's state."""
+    """The progress of one tab's long steps (see the module docstring). ``lock`` is the tab's;
+    ``preview(values)`` draws a snapshot's preview values over the session's state."""
 
     def __init__(self, gui: TabGui, lock: threading.RLock,
                  preview: Callable[[Mapping[str, Any]], None]) -> None:
         self.gui = gui
         self.lock = lock
         self.preview = preview
-        self.state = ProgressState()
+        self.states: dict[str, ProgressState] = {}
+        self.current: str | None = None  # the step that reported last
         self.closed = False
+        self._rows: dict[str, StepProgressGui] = {}
+
+    @property
+    def state(self) -> ProgressState:
+        """The state of the step that reported last (an empty one before any)."""
+        return self.states.get(self.current or "", ProgressState())
+
+    def widgets(self, step: str) -> StepProgressGui | None:
+        """The progress widgets in ``step``'s folder (None: the step has none); forgets the runs of rows
+        that were rebuilt (another session)."""
+        rows = self.gui.steps_folder.progress
+        if rows is not self._rows:
+            self._rows = rows
+            self.states = {s: st for s, st in self.states.items() if s == self.current and not st.finished}
+        return rows.get(step)
 
     def on_progress(self, step: str, progress: Progress) -> None:
         """Session listener: called from the thread running a long step (this tab's or a REST call's)."""
         if self.closed:
             return
-        state = self.state
+        state = self.states.get(step)
         now = time.monotonic()
-        new_run = step != state.step or progress.iteration <= state.iteration
-        if new_run:
-            self.state = state = ProgressState(step=step)
-        state.iteration = progress.iteration
+        new_run = state is None or state.finished or progress.iteration <= state.iteration
+        if state is None or new_run:
+            state = ProgressState(step=step)
+            self.states[step] = state
+        self.current = step
+        state.iteration, state.total = progress.iteration, progress.total
         if progress.loss is not None and np.isfinite(progress.loss):
             state.x.append(float(progress.iteration))
             state.y.append(float(progress.loss))
@@ -86,51 +121,73 @@ class ProgressPanel:
             return  # shown at the next snapshot, or when the step ends
         state.shown = now
         with self.lock:
-            self.show(reset_scale=new_run)
+            self.show(state)
+            if new_run or last or now - state.titled >= TITLE_SECONDS:
+                state.titled = now
+                self._title(running_title(step, progress.iteration, total))
             if progress.values and now - state.preview >= PREVIEW_SECONDS:
                 state.preview = now
                 self.preview(progress.values)
 
-    def show(self, *, reset_scale: bool = False) -> None:
-        """Put the latest snapshot on screen (bar, text, loss plot, log scale when it spans decades)."""
-        state, gui = self.state, self.gui
-        gui.progress_folder.visible = True
-        gui.cancel_button.disabled = False
-        gui.progress_bar.animated = state.animated
-        gui.progress_bar.value = 100.0 * state.fraction
-        gui.progress_text.content = state.message
+    def _title(self, title: str) -> None:
+        if self.gui.title is not None:
+            self.gui.title.set(title)
+
+    def show(self, state: ProgressState) -> None:
+        """Put a step's latest snapshot on screen, in its folder (bar, text, loss plot whose x axis ends
+        at the last iteration, log scale with a label per decade when the losses span decades)."""
+        widgets = self.widgets(state.step or "")
+        if widgets is None:
+            return
+        widgets.show(True)
+        widgets.cancel.disabled = state.finished
+        widgets.bar.animated = state.animated and not state.finished
+        widgets.bar.value = 100.0 * state.fraction
+        widgets.text.content = state.message
         if state.x:
             xs, ys = np.asarray(state.x), np.asarray(state.y)
-            gui.loss_plot.data = (xs, ys)
-            log_scale = bool(ys.min() > 0 and ys.max() / ys.min() > 100)
-            if reset_scale or log_scale != state.log:
-                state.log = log_scale
-                scales: dict[str, Any] = {"x": {"time": False}}
-                if log_scale:
-                    scales["y"] = {"distr": 3, "log": 10}
-                gui.loss_plot.scales = scales
+            scales, axes = chart_axes(xs, ys)
+            plot = widgets.loss_plot
+            plot.data = (xs, ys)
+            if plot.scales != scales:
+                plot.scales = scales
+            if axes is not None and plot.axes != axes:
+                plot.axes = axes
+            plot.visible = True
 
     def idle(self, history: Sequence[RunRecord]) -> None:
-        """No step runs: nothing to cancel; show how the last long step ended."""
-        self.gui.progress_bar.animated = False
+        """No step runs: nothing to cancel, a plain tab title; show how the last long step ended, and hide
+        the finished runs of steps whose status changed since."""
         self.gui.cancel_button.disabled = True
+        self._title(PLAIN_TITLE)
         self.finish(history)
+        self.forget_changed()
 
     def finish(self, history: Sequence[RunRecord]) -> None:
         """After a long step: show its last snapshot and how it ended (it may stop early, converged)."""
-        state = self.state
-        if state.step is None or state.finished:
-            return
-        record = next((r for r in reversed(history) if r.step == state.step), None)
-        if record is None:
-            return
-        state.finished = True
-        self.show()
-        self.gui.cancel_button.disabled = True
-        self.gui.progress_bar.animated = False
-        if record.status == "ok":
-            self.gui.progress_bar.value = 100.0
-        self.gui.progress_text.content = f"{state.message} — **{record.status}**"
+        for state in list(self.states.values()):
+            if state.finished or state.step is None:
+                continue
+            record = next((r for r in reversed(history) if r.step == state.step), None)
+            if record is None:
+                continue
+            state.finished = True
+            if record.status == "ok":
+                state.fraction = 1.0
+            state.message = f"{state.message} — **{record.status}**"
+            self.show(state)
+            widgets = self.widgets(state.step)
+            state.label = None if widgets is None else widgets.folder.label
+
+    def forget_changed(self) -> None:
+        """Hide the progress of finished runs whose step's label changed since (reset, stale, re-run)."""
+        for step, state in list(self.states.items()):
+            widgets = self.widgets(step)
+            if not state.finished or widgets is None or widgets.folder.label == state.label:
+                continue
+            widgets.show(False)
+            del self.states[step]
 
 
-__all__ = ["PREVIEW_SECONDS", "PROGRESS_SECONDS", "ProgressPanel", "ProgressState", "progress_message"]
+__all__ = ["PREVIEW_SECONDS", "PROGRESS_SECONDS", "TITLE_SECONDS", "ProgressPanel", "ProgressState",
+           "progress_message", "running_title"]

@@ -148,13 +148,14 @@ def test_run_to_here_runs_missing_steps_with_progress(server, view):
     assert session.history[-1].params == {"iterations": 12}
     assert "means_abs_error (evaluation)" in view.rows["mean_intensity"].metrics.content
     # the loss of every iteration was plotted, the bar reached 100 %
-    assert view.tab.progress_folder.visible
-    assert list(view.tab.loss_plot.data[0]) == list(range(1, 13))
-    assert view.tab.loss_plot.data[1][-1] == pytest.approx(0.5 ** 12)
-    assert view.tab.progress_bar.value == pytest.approx(100.0)
-    assert view.tab.progress_text.content.startswith("**lift**: iteration 12/12")
-    assert "**ok**" in view.tab.progress_text.content
-    assert view.tab.cancel_button.disabled  # nothing left to cancel
+    progress = view.rows["lift"].progress  # in the step's own folder
+    assert progress is not None and progress.text.visible and progress.loss_plot.visible
+    assert list(progress.loss_plot.data[0]) == list(range(1, 13))
+    assert progress.loss_plot.data[1][-1] == pytest.approx(0.5 ** 12)
+    assert progress.bar.value == pytest.approx(100.0)
+    assert progress.text.content.startswith("**lift**: iteration 12/12")
+    assert "**ok**" in progress.text.content
+    assert view.tab.cancel_button.disabled and progress.cancel.disabled  # nothing left to cancel
     assert isinstance(server.scene.get_handle_by_name("/lab/cloud"), viser.PointCloudHandle)
 
 
@@ -163,8 +164,9 @@ def test_progress_of_a_long_step_run_over_rest_is_shown(view):
     session.run_until("mean_intensity")
     session.run("lift", {"iterations": 5})  # a script's run: the view listens to the session
     view.poll()
-    assert view.tab.progress_folder.visible and list(view.tab.loss_plot.data[0]) == [1, 2, 3, 4, 5]
-    assert "**ok**" in view.tab.progress_text.content and view.rows["lift"].folder.label == "3. Lift ✓ done"
+    progress = view.rows["lift"].progress
+    assert progress is not None and progress.text.visible and list(progress.loss_plot.data[0]) == [1, 2, 3, 4, 5]
+    assert "**ok**" in progress.text.content and view.rows["lift"].folder.label == "3. Lift ✓ done"
 
 
 def test_reset_removes_outputs_and_drawings(server, view):
@@ -277,7 +279,7 @@ def test_long_step_runs_in_background_and_cancels(server, store):
     view.wait(30)
     assert not view.worker.is_alive()
     assert view.session.history[-1].status == "cancelled"
-    assert "cancelled" in view.tab.error_box.content and "**cancelled**" in view.tab.progress_text.content
+    assert "cancelled" in view.tab.error_box.content and "**cancelled**" in view.rows["slow"].progress.text.content
     assert view.rows["slow"].folder.label.endswith("ready")
 
 

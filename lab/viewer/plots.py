@@ -1,0 +1,58 @@
+"""Axes of the viewer's uPlot charts that uPlot's defaults get wrong for the lab's curves.
+
+uPlot labels the ticks of a log axis with at most three decimals, so 1e-4 reads "0" (a log scale
+has no 0); :func:`log_axis` gives the decades with their own labels instead (JSON: viser sends the
+options as data, not functions). A chart's x axis ends where the data ends (:func:`x_scale`: a
+7-iteration run ends at 7, whatever its planned total).
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Any
+
+import numpy as np
+
+
+def spans_decades(y: np.ndarray) -> bool:
+    """Whether values are plotted on a log scale: all positive, spanning more than two decades."""
+    y = y[np.isfinite(y)]
+    return bool(y.size and y.min() > 0 and y.max() / y.min() > 100)
+
+
+def decade_label(value: float) -> str:
+    """A tick label of a decade: ``1e-05``, ``0.001``, ``1``, ``100``, ``1e+06`` (never "0")."""
+    return f"{value:g}"
+
+
+def log_axis(y: np.ndarray) -> dict[str, Any]:
+    """The uPlot axis of positive values ``y`` on a log scale: a tick and label at each decade they span."""
+    y = y[np.isfinite(y) & (y > 0)]
+    if not y.size:
+        return {}
+    lo, hi = math.floor(math.log10(float(y.min()))), math.ceil(math.log10(float(y.max())))
+    splits = [10.0 ** k for k in range(lo, max(hi, lo + 1) + 1)]
+    return {"splits": splits, "values": [decade_label(v) for v in splits]}
+
+
+def x_scale(x: np.ndarray) -> dict[str, Any]:
+    """The uPlot x scale of a chart: numbers (not time), from the first x to the last one."""
+    x = x[np.isfinite(x)]
+    if not x.size:
+        return {"time": False}
+    lo, hi = float(x.min()), float(x.max())
+    return {"time": False, "range": [lo, hi if hi > lo else lo + 1.0]}
+
+
+def chart_axes(x: np.ndarray, y: np.ndarray) -> tuple[dict[str, Any], tuple[dict[str, Any], ...] | None]:
+    """``scales`` and ``axes`` of ``gui.add_uplot`` for series ``y`` (1 or 2-D) over ``x``: the x axis ends
+    at the last x, the y axis is logarithmic with a label per decade when the values span decades."""
+    scales: dict[str, Any] = {"x": x_scale(x)}
+    values = np.asarray(y, dtype=np.float64).ravel()
+    if not spans_decades(values):
+        return scales, None
+    scales["y"] = {"distr": 3, "log": 10}
+    return scales, ({}, log_axis(values))
+
+
+__all__ = ["chart_axes", "decade_label", "log_axis", "spans_decades", "x_scale"]
