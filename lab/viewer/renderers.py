@@ -343,6 +343,9 @@ class Canvas:
     images: Any = None
     plots: Any = None
     on_view_selected: Callable[[str, int], None] | None = None
+    #: ``on_pixel_clicked(image_name, view, pixel)``: a click on a frustum's picture, at that pixel of the
+    #: view; True when something (an interaction) took it, else the click selects the view.
+    on_pixel_clicked: Callable[[str, int, np.ndarray], bool] | None = None
     extent: float = 1.0
     #: Which view each image set shows in the panel (the view sliders write it).
     views: dict[str, int] = field(default_factory=dict)
@@ -448,13 +451,55 @@ class CamerasRenderer(Renderer):
                 color=_color8(value.colors, i, DEFAULT_CAMERA_COLOR), image=picture, format="jpeg",
                 jpeg_quality=85, wxyz=wxyz_from_matrix(rotation_cw), position=center)
             if canvas.on_view_selected is not None and value.image:
-                def clicked(_event: Any, image_name: str = value.image, view: int = view,
-                            callback: Callable[[str, int], None] = canvas.on_view_selected) -> None:
+                def clicked(event: Any, image_name: str = value.image, view: int = view, index: int = i,
+                            cameras: Cameras = value,
+                            callback: Callable[[str, int], None] = canvas.on_view_selected,
+                            on_pixel: Callable[[str, int, np.ndarray], bool] | None = canvas.on_pixel_clicked,
+                            fov: float = fov) -> None:
+                    pixel = frustum_click_pixel(cameras, index, fov=fov, scale=scale,
+                                                ray_origin=getattr(event, "ray_origin", None),
+                                                ray_direction=getattr(event, "ray_direction", None))
+                    if on_pixel is not None and pixel is not None and on_pixel(image_name, view, pixel):
+                        return
                     callback(image_name, view)
 
                 handle.on_click(clicked)
             drawn.handles.append(handle)
         return drawn
+
+
+def frustum_plane_depth(fov: float, aspect: float, scale: float) -> float:
+    """The depth of a viser camera frustum's picture in the camera's frame: viser scales a frustum to a fixed
+    volume, so the picture of ``add_camera_frustum(fov, aspect, scale)`` lies at
+    ``z = scale / cbrt(tan(fov / 2)^2 aspect / 3)`` (viser's CameraFrustumVariants.tsx)."""
+    half = math.tan(fov / 2.0)
+    return scale / ((half * half * aspect / 3.0) ** (1.0 / 3.0))
+
+
+def frustum_click_pixel(cameras: Cameras, index: int, *, fov: float, scale: float, ray_origin: Any,
+                        ray_direction: Any) -> np.ndarray | None:
+    """The pixel ``(u, v)`` of the picture on camera ``index``'s frustum that a click's ray (world frame)
+    meets, or None when it misses the picture. The picture spans the view uniformly (as the texture is
+    drawn): ``u = (X / Z / (2 tan(fov / 2) aspect) + 1/2) width``, ``v`` alike with the height."""
+    if ray_origin is None or ray_direction is None:
+        return None
+    R, t = cameras.R[index], cameras.t[index]
+    origin = R @ np.asarray(ray_origin, dtype=np.float64) + t  # world -> camera: X_c = R X + t
+    direction = R @ np.asarray(ray_direction, dtype=np.float64)
+    aspect = cameras.width / cameras.height
+    depth = frustum_plane_depth(fov, aspect, scale)
+    if abs(direction[2]) < 1e-12:
+        return None
+    along = (depth - origin[2]) / direction[2]
+    if along < 0:
+        return None
+    x, y, z = origin + along * direction
+    half = math.tan(fov / 2.0)
+    u = (x / z / (2.0 * half * aspect) + 0.5) * cameras.width
+    v = (y / z / (2.0 * half) + 0.5) * cameras.height
+    if not (0.0 <= u <= cameras.width and 0.0 <= v <= cameras.height):
+        return None
+    return np.array([u, v])
 
 
 class Segments3DRenderer(Renderer):

@@ -84,7 +84,8 @@ class ClientView:
         self._carry: Any = None  # handed to the interactions of a restarted session (ctx.carried)
         self.tab = build_tab_gui(self.gui, catalog.names())
         self.drawer = StateDrawer(Canvas(scene=self.scene, gui=self.gui, images=self.tab.images_tab,
-                                         plots=self.tab.plots_tab, on_view_selected=self._view_selected))
+                                         plots=self.tab.plots_tab, on_view_selected=self._view_selected,
+                                         on_pixel_clicked=self._pixel_clicked))
         self.progress = ProgressPanel(self.tab, self.lock, self._preview)
         self.runner = Runner(background=background, show_error=self.show_error,
                              refresh=lambda: self.refresh(force=True), mark=self._mark)
@@ -559,6 +560,17 @@ class ClientView:
                                                if r is not None)
             self.camera.frame(state, self.interactions)
             self.scene_panel.show(state, _producers(session, state))
+
+    def _pixel_clicked(self, image_name: str, view: int, pixel: np.ndarray) -> bool:
+        """A click on a frustum's picture: the first interaction that takes the pixel gets it."""
+        for interaction in list(self.interactions):
+            try:
+                if interaction.pixel_clicked(image_name, view, pixel):
+                    return True
+            except Exception as exc:  # an interaction's bug must not take the click handler down
+                self.show_error(exc)
+                return True
+        return False
 
     def fit_view(self) -> None:
         """The "Fit view" button: the camera pointed at everything drawn in 3D."""

@@ -234,6 +234,11 @@ class Interaction:
         frames it when the session has no 3D values of its own yet."""
         return None
 
+    def pixel_clicked(self, image_name: str, view: int, pixel: np.ndarray) -> bool:
+        """A click on pixel ``(u, v)`` of view ``view`` of image set ``image_name``, on a camera frustum's
+        picture; True when this interaction takes it (the click then does not select the view)."""
+        return False
+
     def close(self) -> None:
         """Remove everything this interaction added."""
         for handle in reversed(self.handles):

@@ -93,6 +93,14 @@ class EpipolarExplorer(Interaction):
         """A click on the image plane of camera ``image`` (its ray in world coordinates): pick that pixel."""
         return self.ctx.attempt(lambda: self._click(image, ray_origin, ray_direction))
 
+    def pixel_clicked(self, image_name: str, view: int, pixel: np.ndarray) -> bool:
+        """A click on the picture of a camera frustum the session draws (its ``images``, view 0 or 1): pick
+        that pixel, as a click on the explorer's own image planes does."""
+        if image_name != "images" or view not in (0, 1) or self.geometry is None:
+            return False
+        self.pick_pixel(float(pixel[0]), float(pixel[1]), image=1 if view == 0 else 2)
+        return True
+
     def move_point(self, xyz: Any) -> PointMove | None:
         """Move the 3D point to ``xyz`` (camera 1 frame); None (error shown) when invalid."""
         return self.ctx.attempt(lambda: self._move(xyz, from_handle=False))
