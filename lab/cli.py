@@ -1,6 +1,6 @@
 """The ``vision-lab`` command: serve the lab, list modules, run a pipeline headless, export values.
 
-    vision-lab serve [--host 127.0.0.1] [--port 8000] [--viewer-port 8080]
+    vision-lab serve [--host 127.0.0.1] [--port 8000] [--viewer-port 8080] [--no-warmup]
     vision-lab modules [--json]
     vision-lab run MODULE [--dataset NAME|PATH] [--option KEY=VALUE]... [--set STEP.CONTROL=VALUE]...
                           [--until STEP] [--seed N] [--json]
@@ -339,6 +339,10 @@ def serve(
     unsafe_sandbox: Annotated[bool, typer.Option(
         "--unsafe-sandbox", help="Grade submissions without the bubblewrap sandbox, with Python's audit hook "
                                  "only. For trusted code only, never for a class.")] = False,
+    no_warmup: Annotated[bool, typer.Option(
+        "--no-warmup", help="Do not compile the fast kernels in the background at start-up (also: "
+                            "VISION_LAB_NO_WARMUP=1); a module's first RANSAC, SGM or Efros-Leung step then "
+                            "compiles them, about 20 s on a fresh install.")] = False,
 ) -> None:
     """Start the landing page, the REST API and the 3D viewer (Ctrl-C stops them).
 
@@ -356,7 +360,7 @@ def serve(
         from lab.server import serve as start_server
 
         start_server(host=host, port=port, viewer_port=viewer_port,
-                     data_root=str(data_root) if data_root is not None else None)
+                     data_root=str(data_root) if data_root is not None else None, warmup=not no_warmup)
 
 
 @app.command()

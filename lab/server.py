@@ -7,16 +7,22 @@ that shows its session.
 
     vision-lab serve --host 127.0.0.1 --port 8000 --viewer-port 8080
     # or: from lab.server import serve; serve(port=8000, viewer_port=8080)
+
+At start-up :func:`serve` compiles the modules' fast kernels in one low-priority background thread
+(:func:`start_kernel_warmup`, :mod:`lab.core.kernels`), so a user's first RANSAC, SGM or Efros-Leung step
+does not pause to compile; ``warmup=False`` or ``VISION_LAB_NO_WARMUP=1`` skips it.
 """
 
 from __future__ import annotations
 
 import logging
+import os
 import threading
-from collections.abc import Iterable, Mapping
+from collections.abc import Callable, Iterable, Mapping
 from dataclasses import dataclass
 from typing import TYPE_CHECKING
 
+from lab.core import kernels
 from lab.core.pipeline import Pipeline
 from lab.core.store import SessionStore
 
@@ -85,19 +91,63 @@ def _build(host: str, port: int, viewer_port: int, store: SessionStore | None,
     return store, viewer, viewer_url, api_server
 
 
+#: Set (to anything but "", "0") to skip compiling the kernels at start-up.
+NO_WARMUP_ENV = "VISION_LAB_NO_WARMUP"
+
+
+def _import_modules(names: Iterable[str]) -> None:
+    """Import the served module packages (each registers its kernels' warm-up); one that fails to import is
+    left to fail when it is opened."""
+    from lab.modules import get_pipeline
+
+    for name in names:
+        try:
+            get_pipeline(name)
+        except Exception as exc:
+            log.warning("kernel warm-up: module %s did not import: %s", name, exc)
+
+
+def _served_names(modules: Mapping[str, Pipeline] | Iterable[Pipeline] | None) -> list[str]:
+    from lab.modules import MODULES
+
+    if modules is None:
+        return list(MODULES)
+    return list(modules) if isinstance(modules, Mapping) else [p.name for p in modules]
+
+
+def _log_warmup(status: Mapping[str, kernels.WarmUpStatus]) -> None:
+    total = sum(s.seconds or 0.0 for s in status.values())
+    parts = ", ".join(f"{name} {s.state} {s.seconds or 0.0:.1f} s" for name, s in status.items())
+    log.info("fast kernels compiled in %.1f s (%s)", total, parts or "none registered")
+    print(f"Fast kernels ready: compiled in {total:.1f} s ({parts or 'none registered'})", flush=True)
+
+
+def start_kernel_warmup(names: Iterable[str], *, enabled: bool = True,
+                        on_done: Callable[[Mapping[str, kernels.WarmUpStatus]], None] | None = _log_warmup,
+                        ) -> threading.Thread | None:
+    """Compile the kernels of modules ``names`` in a background daemon thread (not blocking the server);
+    None when ``enabled`` is False or :data:`NO_WARMUP_ENV` is set."""
+    if not enabled or os.environ.get(NO_WARMUP_ENV, "") not in ("", "0"):
+        return None
+    chosen = list(names)
+    return kernels.warm_up_kernels(prepare=lambda: _import_modules(chosen), on_done=on_done)
+
+
 def serve(*, host: str = "127.0.0.1", port: int = 8000, viewer_port: int = 8080,
           store: SessionStore | None = None,
           modules: Mapping[str, Pipeline] | Iterable[Pipeline] | None = None, log_level: str = "info",
-          data_root: str | None = None) -> None:
+          data_root: str | None = None, warmup: bool = True) -> None:
     """Serve the landing page and REST API on ``port`` and the viewer on ``viewer_port``; blocks
     until interrupted (Ctrl-C / SIGTERM), then stops both.
 
     ``store`` (default: a new one) is shared by both; ``modules`` restricts what is offered
     (default: every registered module); ``data_root`` limits the folders datasets may read
-    (:class:`~lab.core.SessionStore`).
+    (:class:`~lab.core.SessionStore`); ``warmup`` compiles the kernels in the background
+    (:func:`start_kernel_warmup`).
     """
     store, viewer, _viewer_url, api_server = _build(host, port, viewer_port, store, modules, log_level,
                                                     data_root)
+    start_kernel_warmup(_served_names(modules), enabled=warmup)
     print(f"Vision Lab: landing page and REST API on http://{_display_host(host)}:{port} "
           f"(OpenAPI at /docs), 3D viewer on {viewer.url}", flush=True)
     print(f"Grading: {sandbox_status()}", flush=True)
@@ -146,4 +196,4 @@ def start(*, host: str = "127.0.0.1", port: int = 8000, viewer_port: int = 8080,
     return RunningLab(store, viewer, api_server, thread, f"http://{_display_host(host)}:{port}", viewer.url)
 
 
-__all__ = ["RunningLab", "serve", "start"]
+__all__ = ["NO_WARMUP_ENV", "RunningLab", "serve", "start", "start_kernel_warmup"]

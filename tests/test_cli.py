@@ -417,9 +417,10 @@ def test_serve_calls_the_server_with_the_options(monkeypatch, tmp_path):
     monkeypatch.setitem(sys.modules, "lab.server", fake)
     assert invoke("serve").exit_code == 0
     assert invoke("serve", "--host", "0.0.0.0", "--port", "9001", "--viewer-port", "9002",
-                  "--data-root", str(tmp_path)).exit_code == 0
-    assert calls == [{"host": "127.0.0.1", "port": 8000, "viewer_port": 8080, "data_root": None},
-                     {"host": "0.0.0.0", "port": 9001, "viewer_port": 9002, "data_root": str(tmp_path)}]
+                  "--data-root", str(tmp_path), "--no-warmup").exit_code == 0
+    assert calls == [{"host": "127.0.0.1", "port": 8000, "viewer_port": 8080, "data_root": None, "warmup": True},
+                     {"host": "0.0.0.0", "port": 9001, "viewer_port": 9002, "data_root": str(tmp_path),
+                      "warmup": False}]
     assert_one_line_error(invoke("serve", "--port", "70000"), "--port")
     assert_one_line_error(invoke("serve", "--data-root", str(tmp_path / "missing")), "--data-root")
 

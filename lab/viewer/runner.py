@@ -15,7 +15,10 @@ by a loop of the viewer's own:
 
 A :class:`Runner` executes a plan with :meth:`Session.run_plan` in the tab's one worker thread:
 each step's label says "running" while it runs, the tab is redrawn after each step, Cancel stops a
-long step at its next snapshot and a plan before its next step.
+long step at its next snapshot and a plan before its next step. A step whose module's fast kernels are not
+compiled in this process yet (:func:`lab.core.kernels.needs_compiling`: ``vision-lab serve`` compiles them
+at start-up, so this is rare) is labelled :data:`COMPILING` instead, so a first run's pause to compile is
+not taken for a hang.
 """
 
 from __future__ import annotations
@@ -26,10 +29,20 @@ import traceback
 from collections.abc import Callable
 from typing import Any
 
+from lab.core import kernels
 from lab.core.errors import LabError
 from lab.core.pipeline import Plan, RunRecord, Session, StepParams
 
 log = logging.getLogger("lab.viewer")
+
+#: The label of a running step that compiles its kernels first (see the module docstring).
+COMPILING = "… running: compiling fast kernels once (~20 s); cached afterwards"
+
+
+def running_label(session: Session, step: str) -> str:
+    """What the label of ``step`` says while it runs: "running", or :data:`COMPILING` when running it now
+    compiles kernels first."""
+    return COMPILING if kernels.needs_compiling(session.pipeline.name, step) else "running"
 
 
 def step_plan(session: Session, step: str, *, dependants: bool) -> Plan:
@@ -84,13 +97,13 @@ class Runner:
         if not steps:
             self.refresh()
             return
-        self.mark(steps[0], "running")
+        self.mark(steps[0], running_label(session, steps[0]))
 
         def after(record: RunRecord) -> None:
             index = steps.index(record.step)
             if index + 1 < len(steps):
                 self.refresh()
-                self.mark(steps[index + 1], "running")
+                self.mark(steps[index + 1], running_label(session, steps[index + 1]))
 
         def job() -> None:
             replaced = {name: f for name in steps
@@ -130,4 +143,4 @@ class Runner:
                 self.show_error(exc)
 
 
-__all__ = ["Runner", "step_plan"]
+__all__ = ["COMPILING", "Runner", "running_label", "step_plan"]

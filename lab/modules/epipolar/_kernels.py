@@ -12,7 +12,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from lab.core.kernels import kernel
+from lab.core.kernels import dispatchers_in, kernel, register_warm_up, warm_up_steps
 from lab.modules.epipolar._checks import SAMPLE_SIZE
 
 
@@ -499,3 +499,17 @@ def _two_nearest_scan_kernel(dots: np.ndarray, qq: np.ndarray, tt: np.ndarray, s
                     column_second[j] = s
         first[i], second[i] = j1, j2
         unsure[i] = third - runner <= 2.0 * slack or runner - best <= 2.0 * slack
+
+
+# ----------------------------------------------------------------------------------------------------
+# Warm-up (lab.core.kernels): the steps that call these kernels, run once on a small rendered pair
+# ----------------------------------------------------------------------------------------------------
+def _warm_up() -> None:
+    """Match, the 8-point fit and RANSAC (with its degeneracy screens) on a 320 x 240 rendered pair."""
+    from lab.modules.epipolar import PIPELINE
+
+    warm_up_steps(PIPELINE, "rendered", {"width": 320, "height": 240}, "estimate_fundamental_ransac")
+
+
+register_warm_up("epipolar", ("match_features", "estimate_fundamental_8point", "estimate_fundamental_ransac"),
+                 dispatchers_in(globals()), _warm_up)

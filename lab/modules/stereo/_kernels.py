@@ -14,7 +14,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from lab.core.kernels import kernel
+from lab.core.kernels import dispatchers_in, kernel, register_warm_up, warm_up_steps
 
 #: Path costs of the SGM kernel are int16: every ``L <= C + P2`` must stay below this (and the padding).
 SGM_LARGEST = 16383
@@ -439,3 +439,23 @@ def _best_two_costs_kernel(volume, best, second, y0, y1):
                 value = slices[d, x]
                 far = (d < winner[x] - 1) or (d > winner[x] + 1)
                 other[x] = value if far and value < other[x] else other[x]
+
+
+# ----------------------------------------------------------------------------------------------------
+# Warm-up (lab.core.kernels): every cost, SGM on 4 and 8 paths, the winners, the filters, on a tiny pair
+# ----------------------------------------------------------------------------------------------------
+def _warm_up() -> None:
+    """The steps from the cost volume to the filtered disparity on a 64 x 48 synthetic pair, once per cost,
+    and the Hamming costs of census codes (the lesson's helper; the step sums them by rows)."""
+    from lab.modules.stereo import COSTS, PIPELINE, census_transform, hamming_costs
+
+    codes = census_transform(np.zeros((8, 12), np.float32), 5)
+    hamming_costs(codes, codes, 4)
+    for index, cost in enumerate(COSTS):
+        params: dict[str, dict[str, object]] = {"cost_volume": {"cost": cost, "max_disparity": 8},
+                                                "aggregate_costs": {"paths": 4 if index % 2 else 8}}
+        warm_up_steps(PIPELINE, "synthetic", {"width": 64, "height": 48}, "filter_disparity", params)
+
+
+register_warm_up("stereo", ("cost_volume", "aggregate_costs", "left_right_check", "refine_subpixel",
+                            "filter_disparity"), dispatchers_in(globals()), _warm_up)

@@ -7,7 +7,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from lab.core.kernels import kernel
+from lab.core.kernels import dispatchers_in, kernel, register_warm_up, warm_up_steps
 
 
 @kernel
@@ -75,3 +75,18 @@ def _fill_layer_kernel(sums: np.ndarray, totals: np.ndarray, rows: np.ndarray, c
         order[row, col] = counter
         counter += 1
     return counter
+
+
+# ----------------------------------------------------------------------------------------------------
+# Warm-up (lab.core.kernels): Efros-Leung on a tiny gray and a tiny colour sample
+# ----------------------------------------------------------------------------------------------------
+def _warm_up() -> None:
+    """Efros-Leung's fast fill on 16 x 16 outputs of a gray and a colour procedural sample."""
+    from lab.modules.texture import PIPELINE
+
+    for colour in (False, True):
+        warm_up_steps(PIPELINE, "procedural", {"size": 24, "colour": colour}, "synthesize_efros_leung",
+                      {"synthesize_efros_leung": {"size": (16, 16), "window": 5}})
+
+
+register_warm_up("texture", ("synthesize_efros_leung",), dispatchers_in(globals()), _warm_up)
