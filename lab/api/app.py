@@ -35,6 +35,11 @@ from lab.core.store import SessionStore
 #: The landing page and its assets (repository root ``static/``).
 STATIC_DIR = Path(__file__).resolve().parents[2] / "static"
 DEFAULT_MAX_UPLOAD_BYTES = 32 * 2**20
+#: The lab's icon (an eye on the accent blue), served at /favicon.ico; the landing page inlines the same.
+FAVICON_SVG = ("<svg xmlns='http://www.w3.org/2000/svg' viewBox='0 0 32 32'>"
+               "<rect width='32' height='32' rx='7' fill='#2f6fde'/>"
+               "<path d='M5 16c3-6 7-9 11-9s8 3 11 9c-3 6-7 9-11 9s-8-3-11-9z' fill='none' stroke='white' "
+               "stroke-width='2.5'/><circle cx='16' cy='16' r='4' fill='white'/></svg>")
 
 _DESCRIPTION = """\
 Drive Vision Lab's teaching modules from scripts: list the modules and the JSON Schema of every
@@ -130,9 +135,14 @@ def create_app(store: SessionStore | None = None, *, modules: Callable[[str], Pi
     def landing_page() -> Response:
         index = STATIC_DIR / "index.html"
         if not index.is_file():  # an install without the static folder still says where to go
-            return HTMLResponse("<!doctype html><title>Vision Lab</title><h1>Vision Lab</h1>"
+            return HTMLResponse("<!doctype html><title>Vision Lab</title>"
+                                '<link rel="icon" href="/favicon.ico"><h1>Vision Lab</h1>'
                                 '<p><a href="/docs">API documentation</a></p>')
         return FileResponse(index, media_type="text/html")
+
+    @app.get("/favicon.ico", include_in_schema=False)
+    def favicon() -> Response:
+        return Response(FAVICON_SVG, media_type="image/svg+xml", headers={"Cache-Control": "max-age=86400"})
 
     if STATIC_DIR.is_dir():
         app.mount("/static", StaticFiles(directory=STATIC_DIR), name="static")

@@ -164,7 +164,7 @@ def list_command(as_json: Annotated[bool, typer.Option("--json", help="Print JSO
     if not lessons:
         typer.echo(f"no lessons in {catalog.root}")
     for entry in lessons:
-        detail = entry.get("error") or (f"module {entry['module']}, {entry['points']:g} points, tasks: "
+        detail = entry.get("error") or (f"module {entry['module_title']}, {entry['points']:g} points, tasks: "
                                         + ", ".join(t["step"] for t in entry["tasks"]))
         typer.echo(f"{entry['id']}  {entry['title']}  ({detail})")
 

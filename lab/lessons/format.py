@@ -252,9 +252,20 @@ class Lesson:
         raise UnknownName("task", f"lesson {self.id!r} has no task {name!r}; tasks are "
                                   f"{[t.name for t in self.tasks]}")
 
+    @property
+    def module_title(self) -> str:
+        """The module as a person reads it: its pipeline's title (``lab.modules.sfm_basics:PIPELINE`` ->
+        "Structure from motion: the building blocks"); the ``module`` entry when it does not load."""
+        try:
+            return self.pipeline.title or self.module
+        except LabError:
+            return self.module
+
     def summary(self) -> dict[str, Any]:
-        """The lesson as listed by ``GET /api/lessons``."""
-        return {"id": self.id, "title": self.title, "module": self.module, "points": self.points,
+        """The lesson as listed by ``GET /api/lessons`` (``module`` is the entry of tasks.toml,
+        ``module_title`` the module's human name)."""
+        return {"id": self.id, "title": self.title, "module": self.module, "module_title": self.module_title,
+                "points": self.points,
                 "tasks": [{"name": t.name, "title": t.title, "step": t.step, "points": t.points}
                           for t in self.tasks]}
 

@@ -61,10 +61,26 @@ NO_CODE = "no code of yours is loaded: press \"Upload my .py\" or \"Load starter
 # --- what is shown (pure: no viser) -------------------------------------------------------------
 def lesson_summary(lesson: Lesson) -> str:
     """The lesson's title, module and tasks (which step each one replaces), as Markdown."""
-    lines = [f"**{lesson.title}** · module `{lesson.module}` · {format_number(lesson.points)} points", ""]
+    lines = [f"**{lesson.title}** · module: {cell(lesson.module_title)} · "
+             f"{format_number(lesson.points)} points", ""]
     for task in lesson.tasks:
         lines.append(f"- {task.title} ({format_number(task.points)} points): step `{task.step}`")
     return "\n".join(lines)
+
+
+#: What a task step reads when the student's code failed in it (and its outputs are not there).
+FAILED = "failed"
+
+
+def failed_label(index: int, title: str) -> str:
+    """The folder label of a task step whose student code failed, readable while the step is folded."""
+    return f"{index + 1}. {title} ✗ {FAILED}: your code failed"
+
+
+def failure_banner(task: Task, reason: str) -> str:
+    """The lesson panel's notice that the student's function failed (shown above the lesson text)."""
+    return (f"⚠ **Your code failed** in step `{task.step}` ({cell(task.title)}):\n\n{code_block(reason)}"
+            "\n\nUnfold the step for what your code printed; fix the file and load it again.")
 
 
 def code_status(lesson: Lesson, name: str, problems: Mapping[str, str]) -> str:
@@ -263,11 +279,14 @@ class LessonMode:
         self.use_mine: dict[str, bool] = {}
         #: The last comparison of each task step (what the GUI shows).
         self.compared: dict[str, SideBySide] = {}
+        #: Task steps whose student code failed on its last run, and why (cleared by a run that works).
+        self.failed: dict[str, str] = {}
         self.closed = False
         self._syncing = False  # the picker is being set by the code, not by the user
         #: The lesson's panel (its text, and the Compare tab): there while a lesson is open.
         self.panel: Any = None
         self.text: Any = None
+        self.banner: Any = None
         self._compare_tab: Any = None
         self._compare_drawer: StateDrawer | None = None
         self._build()
@@ -365,6 +384,7 @@ class LessonMode:
             gui = self.ctx.gui
             self.panel = gui.add_panel()
             with self.panel.add_tab("Lesson"):
+                self.banner = gui.add_markdown("", visible=False)
                 self.text = gui.add_markdown("")
             try:  # one column: the text above, the images below
                 media = self.ctx.media_panel
@@ -383,7 +403,7 @@ class LessonMode:
             return
         self._compare_drawer, self._compare_tab = None, None  # went with the panel
         self.panel.remove()
-        self.panel = self.text = None
+        self.panel = self.text = self.banner = None
         try:
             self.ctx.media_panel.dock_left()
             self.ctx.media_panel.set_width(MEDIA_PANEL_WIDTH)
@@ -393,6 +413,7 @@ class LessonMode:
     def attach(self) -> None:
         """Add the task widgets to the open session's step folders (after the view rebuilt them)."""
         with self.ctx.lock:
+            self._clear_failures()
             self._remove_rows()
             self._clear_compare()
             lesson, session = self.lesson, self.ctx.session()
@@ -522,12 +543,59 @@ class LessonMode:
             except StudentCodeFailed as exc:
                 row.result.content = (f"⚠ **Your code failed:**\n\n{code_block(exc.reason)}\n\n"
                                       f"{printed_markdown(code.printed)}")
+                self._failed(row.task, exc.reason)
                 raise
             row.result.content = f"Ran **your** `{step}`.\n\n{printed_markdown(code.printed)}"
+            self._worked(step)
             return value
 
         run_mine.__name__ = step
         return run_mine
+
+    def status_of(self, step: str, status: str) -> str:
+        """``status`` of ``step`` as the lesson sees it: :data:`FAILED` for a task step whose student code
+        failed on its last run and whose outputs are not there (for a view that labels its steps)."""
+        return FAILED if step in self.failed and status not in ("done", "stale", "running") else status
+
+    def _failed(self, task: Task, reason: str) -> None:
+        """The student's code failed in ``task``'s step: say so where it is seen with the step folded."""
+        with self.ctx.lock:
+            self.failed[task.step] = reason
+            if self.banner is not None:
+                self.banner.content = failure_banner(task, reason)
+                self.banner.visible = True
+        self._relabel_after_run(task.step)
+
+    def _worked(self, step: str) -> None:
+        with self.ctx.lock:
+            self.failed.pop(step, None)
+            if self.banner is not None and not self.failed:
+                self.banner.visible = False
+
+    def _relabel_after_run(self, step: str) -> None:
+        """Label the failed step once the tab's worker has ended (its last act is a refresh that labels
+        every step by the session's status, which knows nothing of the lesson: ``ready``)."""
+        worker = threading.current_thread()
+        if worker is threading.main_thread() or not worker.name.startswith("lab-viewer-"):
+            self._show_failed_label(step)  # run inline (tests): no worker to wait for
+            return
+
+        def relabel() -> None:
+            worker.join(timeout=120)
+            self._show_failed_label(step)
+
+        threading.Thread(target=relabel, name=f"lab-lesson-relabel-{step}", daemon=True).start()
+
+    def _show_failed_label(self, step: str) -> None:
+        with self.ctx.lock:
+            session = self.ctx.session()
+            folder = self.ctx.step_folder(step)
+            if self.closed or session is None or folder is None or step not in self.failed:
+                return
+            if self.status_of(step, session.step_status().get(step, "ready")) != FAILED:
+                return
+            names = [spec.name for spec in session.pipeline.steps]
+            folder.label = failed_label(names.index(step), session.pipeline.step(step).title)
 
     # --- comparing -------------------------------------------------------------------------------
     def compare(self, step: str) -> None:
@@ -587,6 +655,11 @@ class LessonMode:
             problems = "; ".join(f"{k}: {v}" for k, v in self._compare_drawer.errors.items())
             self.ctx.show_error(LabError("drawing", problems))
 
+    def _clear_failures(self) -> None:
+        self.failed.clear()
+        if self.banner is not None:
+            self.banner.visible = False
+
     def _clear_compare(self) -> None:
         self.compared.clear()
         if self._compare_drawer is not None:
@@ -607,5 +680,6 @@ class LessonMode:
             code.close()
 
 
-__all__ = ["NO_LESSON", "LessonMode", "TaskRow", "array_comparison", "code_status", "comparison_markdown",
-           "lesson_summary", "side_by_side_state", "upload_text"]
+__all__ = ["FAILED", "NO_LESSON", "LessonMode", "TaskRow", "array_comparison", "code_status",
+           "comparison_markdown", "failed_label", "failure_banner", "lesson_summary", "side_by_side_state",
+           "upload_text"]

@@ -7,6 +7,7 @@ are shown in the GUI, never raised; the sandbox ends with the tab."""
 from __future__ import annotations
 
 import sys
+import time
 from pathlib import Path
 
 import numpy as np
@@ -241,6 +242,39 @@ def test_the_starter_fails_with_the_students_message(server, store, views, lesso
     assert "Your step failed" in mode.rows[HOMOGRAPHIES].result.content
     assert "not implemented yet" in mode.rows[HOMOGRAPHIES].result.content
     assert "not implemented yet" in view.tab.error_box.content
+
+
+def test_a_step_the_students_code_failed_reads_failed_while_folded(server, store, views, lessons):
+    view = calibration_view(server, store, views, lessons, background=True)
+    mode = view.lesson_mode
+    click(mode.starter_button)
+    view.wait()
+    view.press(HOMOGRAPHIES, "Run")
+    view.wait()
+    row = mode.rows[HOMOGRAPHIES]
+    deadline = time.monotonic() + 20  # the label is set once the worker's last refresh is over
+    while "failed" not in row.folder.label and time.monotonic() < deadline:
+        time.sleep(0.02)
+    assert "✗ failed" in row.folder.label and "ready" not in row.folder.label
+    assert mode.banner.visible and "Your code failed" in mode.banner.content
+    assert "not implemented yet" in mode.banner.content and HOMOGRAPHIES in mode.banner.content
+    assert mode.status_of(HOMOGRAPHIES, "ready") == "failed" and mode.status_of(INTRINSICS, "blocked") == "blocked"
+
+    row.use_mine.value = False  # the reference's step works: the failure is gone
+    view.press(HOMOGRAPHIES, "Run")
+    view.wait()
+    assert view.session.step_status()[HOMOGRAPHIES] == "done" and "✓ done" in row.folder.label
+    assert mode.status_of(HOMOGRAPHIES, "done") == "done"
+
+
+def test_lesson_summary_names_the_module_for_humans(lessons):
+    from lab.viewer.lesson import lesson_summary
+
+    sfm = LessonCatalog(REPO / "lessons").get("04-sfm")
+    assert sfm.module == "lab.modules.sfm_basics:PIPELINE"
+    assert sfm.module_title == sfm.pipeline.title and "Structure from motion" in sfm.module_title
+    assert "module: Structure from motion" in lesson_summary(sfm) and "sfm_basics" not in lesson_summary(sfm)
+    assert sfm.summary()["module_title"] == sfm.module_title and sfm.summary()["module"] == sfm.module
 
 
 def test_broken_files_show_an_error_and_the_viewer_goes_on(server, store, views, lessons):
