@@ -116,9 +116,9 @@ def _served_names(modules: Mapping[str, Pipeline] | Iterable[Pipeline] | None) -
 
 
 def _log_warmup(status: Mapping[str, kernels.WarmUpStatus]) -> None:
+    """The one start-up line saying the kernels are ready, with the seconds per module."""
     total = sum(s.seconds or 0.0 for s in status.values())
     parts = ", ".join(f"{name} {s.state} {s.seconds or 0.0:.1f} s" for name, s in status.items())
-    log.info("fast kernels compiled in %.1f s (%s)", total, parts or "none registered")
     print(f"Fast kernels ready: compiled in {total:.1f} s ({parts or 'none registered'})", flush=True)
 
 
