@@ -20,9 +20,18 @@ def spans_decades(y: np.ndarray) -> bool:
     return bool(y.size and y.min() > 0 and y.max() / y.min() > 100)
 
 
-def decade_label(value: float) -> str:
-    """A tick label of a decade: ``1e-05``, ``0.001``, ``1``, ``100``, ``1e+06`` (never "0")."""
-    return f"{value:g}"
+#: Axis options that keep uPlot's look (grid lines, no tick marks) once an axis is given.
+PLAIN_AXIS: dict[str, Any] = {"ticks": {"show": False}, "grid": {"show": True}}
+
+
+def decade_label(exponent: int) -> str:
+    """The tick label of ``10 ** exponent``: ``1e-5``, ``1e-4``, ``0.001`` ... ``1000``, ``1e4`` (never "0";
+    at most five characters, so it fits uPlot's axis)."""
+    if -3 <= exponent < 0:
+        return f"{10.0 ** exponent:.{-exponent}f}"
+    if 0 <= exponent <= 3:
+        return str(10 ** exponent)
+    return f"1e{exponent}"
 
 
 def log_axis(y: np.ndarray) -> dict[str, Any]:
@@ -31,8 +40,9 @@ def log_axis(y: np.ndarray) -> dict[str, Any]:
     if not y.size:
         return {}
     lo, hi = math.floor(math.log10(float(y.min()))), math.ceil(math.log10(float(y.max())))
-    splits = [10.0 ** k for k in range(lo, max(hi, lo + 1) + 1)]
-    return {"splits": splits, "values": [decade_label(v) for v in splits]}
+    exponents = range(lo, max(hi, lo + 1) + 1)
+    return {**PLAIN_AXIS, "splits": [10.0 ** k for k in exponents],
+            "values": [decade_label(k) for k in exponents]}
 
 
 def x_scale(x: np.ndarray) -> dict[str, Any]:
@@ -46,13 +56,16 @@ def x_scale(x: np.ndarray) -> dict[str, Any]:
 
 def chart_axes(x: np.ndarray, y: np.ndarray) -> tuple[dict[str, Any], tuple[dict[str, Any], ...] | None]:
     """``scales`` and ``axes`` of ``gui.add_uplot`` for series ``y`` (1 or 2-D) over ``x``: the x axis ends
-    at the last x, the y axis is logarithmic with a label per decade when the values span decades."""
+    at the last x, the y axis is logarithmic, from the decade below the values to the one above, with a
+    label per decade, when the values span decades."""
     scales: dict[str, Any] = {"x": x_scale(x)}
     values = np.asarray(y, dtype=np.float64).ravel()
     if not spans_decades(values):
         return scales, None
-    scales["y"] = {"distr": 3, "log": 10}
-    return scales, ({}, log_axis(values))
+    axis = log_axis(values)
+    splits = axis["splits"]  # the y range is the decades labelled (uPlot draws given ticks even outside it)
+    scales["y"] = {"distr": 3, "log": 10, "range": [splits[0], splits[-1]]}
+    return scales, (dict(PLAIN_AXIS), axis)
 
 
-__all__ = ["chart_axes", "decade_label", "log_axis", "spans_decades", "x_scale"]
+__all__ = ["PLAIN_AXIS", "chart_axes", "decade_label", "log_axis", "spans_decades", "x_scale"]

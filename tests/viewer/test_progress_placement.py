@@ -14,7 +14,7 @@ from lab.core import Loaded, Pipeline, Progress, Range
 from lab.core.step import step_result
 from lab.viewer.app import ClientView, ModuleCatalog
 from lab.viewer.gui import PLAIN_TITLE
-from lab.viewer.plots import chart_axes, log_axis
+from lab.viewer.plots import chart_axes, decade_label, log_axis
 from lab.viewer.progress import running_title
 from toy_pipeline import TOY
 
@@ -140,9 +140,9 @@ def test_the_loss_plot_ends_at_the_iterations_run_and_labels_every_decade(server
     plot = view.rows["refine"].progress.loss_plot
     assert list(plot.data[0]) == [1, 2, 3, 4, 5, 6, 7]
     assert plot.scales["x"] == {"time": False, "range": [1.0, 7.0]}  # not 100, the planned total
-    assert plot.scales["y"] == {"distr": 3, "log": 10}
+    assert plot.scales["y"] == {"distr": 3, "log": 10, "range": [pytest.approx(1e-6), 1.0]}
     labels = plot.axes[1]["values"]
-    assert "0" not in labels and labels[0] == "1e-06" and labels[-1] == "1"
+    assert "0" not in labels and labels[0] == "1e-6" and labels[-1] == "1"
     assert plot.axes[1]["splits"] == pytest.approx([10.0 ** k for k in range(-6, 1)])
     assert "7/100" in view.rows["refine"].progress.text.content and "**ok**" in view.rows["refine"].progress.text.content
 
@@ -152,11 +152,18 @@ def test_a_log_axis_of_a_schedule_has_no_zero_tick():
     abar = np.cumprod(1 - betas)
     y = np.stack([betas, abar, np.sqrt(abar), np.sqrt(1 - abar)])
     scales, axes = chart_axes(np.arange(1000.0), y)
-    assert scales["y"]["distr"] == 3 and axes is not None
+    assert scales["y"]["distr"] == 3 and axes is not None and scales["y"]["range"] == pytest.approx([1e-5, 1.0])
     assert axes[1] == log_axis(y.ravel())
     assert "0" not in axes[1]["values"] and all(float(v) > 0 for v in axes[1]["values"])
-    assert axes[1]["values"][0] == "1e-05" and axes[1]["values"][-1] == "1"
+    assert axes[1]["values"] == ["1e-5", "1e-4", "0.001", "0.01", "0.1", "1"]
+    assert axes[1]["splits"] == pytest.approx([1e-5, 1e-4, 1e-3, 1e-2, 0.1, 1.0])
     assert scales["x"]["range"] == [0.0, 999.0]
+
+
+def test_decade_labels_are_short_and_never_zero():
+    assert [decade_label(k) for k in (-7, -4, -3, -1, 0, 2, 3, 4, 9)] == [
+        "1e-7", "1e-4", "0.001", "0.1", "1", "100", "1000", "1e4", "1e9"]
+    assert log_axis(np.array([0.0, -1.0])) == {}  # nothing positive: no log axis
 
 
 def test_a_linear_axis_is_left_to_uplot():
