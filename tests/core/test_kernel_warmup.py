@@ -150,3 +150,20 @@ def test_serve_starts_the_warm_up_for_the_modules_it_serves(monkeypatch: pytest.
     server.serve(modules={"stereo": get_pipeline("stereo")}, warmup=False)
     assert calls[0][0][:3] == ["calibration", "epipolar", "stereo"] and calls[0][1]
     assert calls[1] == (["stereo"], False) and stopped == [True, True]
+
+
+def test_the_viewer_labels_a_step_that_compiles_while_it_runs(monkeypatch: pytest.MonkeyPatch) -> None:
+    from lab.viewer.runner import Runner
+
+    pipeline = get_pipeline("texture")  # imported first: importing registers the real warm-up
+    monkeypatch.setattr(kernels, "_WARM_UPS", {})
+    monkeypatch.setattr(kernels, "_STATUS", {})
+    kernels.register_warm_up("texture", ["window_distances"], [_fresh_dispatcher()], lambda: None)
+    session = Session(pipeline, pipeline.dataset("brick").load({}), dataset="brick")
+    marks: list[tuple[str, str]] = []
+    errors: list[BaseException] = []
+    runner = Runner(background=False, show_error=errors.append, refresh=lambda: None,
+                    mark=lambda step, status: marks.append((step, status)))
+    runner.run_plan(session, session.plan("window_distances"), {})
+    assert errors == []
+    assert marks == [("pick_query_window", "running"), ("window_distances", COMPILING)]
