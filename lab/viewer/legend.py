@@ -136,6 +136,22 @@ def legend_html(entries: Iterable[LegendEntry], producers: Mapping[str, str] | N
     return "<div style='font-size:.85em;line-height:1.3'>" + "".join(rows) + "</div>"
 
 
+#: The viewer's "how to use this" strip: what a newcomer needs to get going, in three short lines.
+HOW_TO = (
+    "Pick a module and dataset below, then **Run all** — or open a step and **Run** it; a changed control "
+    "marks later steps *stale*. **Scene** explains the colours, **Fit view** frames them; drag to orbit, "
+    "scroll to zoom, click a camera's picture."
+)
+
+
+def add_how_to(gui: Any, *, order: float = 0.5) -> Any:
+    """The "How to use this" strip at the top of the panel (a folder a user can fold away)."""
+    folder = gui.add_folder("How to use this", order=order, expand_by_default=True)
+    with folder:
+        gui.add_markdown(HOW_TO)
+    return folder
+
+
 class ScenePanel:
     """A "Scene" folder of the viewer: the legend of what is drawn and a "Fit view" button."""
 
@@ -156,5 +172,5 @@ class ScenePanel:
         return content
 
 
-__all__ = ["LegendEntry", "ScenePanel", "Swatch", "colour_groups", "legend_entries", "legend_entry",
-           "legend_html"]
+__all__ = ["HOW_TO", "LegendEntry", "ScenePanel", "Swatch", "add_how_to", "colour_groups", "legend_entries",
+           "legend_entry", "legend_html"]

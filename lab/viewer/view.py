@@ -29,7 +29,7 @@ from lab.core.errors import LabError, UnknownName
 from lab.core.pipeline import DatasetSpec, Plan, RunRecord, Session, StepParams
 from lab.core.store import SessionStore
 from lab.viewer.camera import CameraFramer, framing
-from lab.viewer.legend import ScenePanel
+from lab.viewer.legend import ScenePanel, add_how_to
 from lab.viewer.catalog import ModuleCatalog
 from lab.viewer.gui import StepRow, build_step_rows, build_tab_gui
 from lab.viewer.interactions import Interaction, InteractionContext, interactions_for
@@ -90,6 +90,7 @@ class ClientView:
         self.runner = Runner(background=background, show_error=self.show_error,
                              refresh=lambda: self.refresh(force=True), mark=self._mark)
         self.camera = CameraFramer(target, is_client=is_client)
+        self.how_to = add_how_to(self.gui)
         self.scene_panel = ScenePanel(self.gui, on_fit=lambda: self.guard(self.fit_view))
         self._wire()
         self._module_changed()

@@ -56,6 +56,7 @@ def test_the_viewer_shows_the_legend_after_a_run_and_fit_view_frames_the_scene(s
                       background=False)
     view.start({})
     assert "No value of the session drawn in 3D yet" in view.scene_panel.legend.content
+    assert view.how_to.label == "How to use this"
     view.run_all()
     content = view.scene_panel.legend.content
     drawn = [e.name for e in legend_entries(dict(view.session.state))]
