@@ -61,6 +61,9 @@ def workers() -> int:
 
 
 _POOL: ThreadPoolExecutor | None = None
+#: ``_INLINE.active`` in a thread: its :func:`in_parallel` jobs run in that thread (the warm-up's, so that it
+#: compiles in its one low-priority thread, not on the pool's threads at normal priority).
+_INLINE = threading.local()
 _POOL_LOCK = threading.Lock()
 
 
@@ -88,7 +91,7 @@ def in_parallel(function: Callable[..., Any], jobs: Sequence[tuple[Any, ...]]) -
     The jobs must write disjoint parts of their outputs (one band each) and release the GIL
     (:func:`kernel` does) to run at the same time. Exceptions propagate from the first failing job.
     """
-    if len(jobs) <= 1:
+    if len(jobs) <= 1 or getattr(_INLINE, "active", False):
         return [function(*job) for job in jobs]
     futures = [_pool().submit(function, *job) for job in jobs]
     return [future.result() for future in futures]
@@ -239,14 +242,19 @@ def warm_up_steps(pipeline: Any, dataset: str, options: dict[str, Any], target: 
 
 def run_warm_ups(prepare: Callable[[], None] | None = None,
                  on_done: Callable[[dict[str, WarmUpStatus]], None] | None = None) -> dict[str, WarmUpStatus]:
-    """Run, in this thread, ``prepare()`` (importing the modules registers their warm-ups) then every
-    registered warm-up not yet done, one after the other; ``on_done(status)`` at the end."""
+    """Run ``prepare()`` (importing the modules registers their warm-ups) then every registered warm-up not
+    yet done, one after the other, all in this thread (its :func:`in_parallel` jobs too); ``on_done(status)``
+    at the end. It makes this thread nice for good: call it in its own thread, :func:`warm_up_kernels`."""
     _lower_priority()
-    if prepare is not None:
-        prepare()
-    for entry in warm_ups().values():
-        if kernel_warmup_status()[entry.module].state != "done" or not all_compiled(entry.kernels):
-            _warm_one(entry)
+    _INLINE.active = True
+    try:
+        if prepare is not None:
+            prepare()
+        for entry in warm_ups().values():
+            if kernel_warmup_status()[entry.module].state != "done" or not all_compiled(entry.kernels):
+                _warm_one(entry)
+    finally:
+        _INLINE.active = False
     status = kernel_warmup_status()
     if on_done is not None:
         on_done(status)

@@ -107,7 +107,8 @@ def test_a_failing_warm_up_is_reported_not_raised(monkeypatch: pytest.MonkeyPatc
         raise ValueError("no data")
 
     kernels.register_warm_up("fake", ["step"], [_fresh_dispatcher()], broken)
-    status = kernels.run_warm_ups()
+    kernels.warm_up_kernels().join(60)
+    status = kernels.kernel_warmup_status()
     assert status["fake"].state == "failed" and "no data" in (status["fake"].error or "")
 
 
@@ -122,6 +123,7 @@ def test_the_server_start_up_launches_the_warm_up_thread(monkeypatch: pytest.Mon
 
     def run() -> None:
         ran.append(threading.current_thread().name)
+        assert kernels.in_parallel(lambda: threading.current_thread().name, [(), ()]) == ran * 2  # inline
         niceness.append(os.getpriority(os.PRIO_PROCESS, threading.get_native_id()))
         dispatcher(np.ones(2))
 
