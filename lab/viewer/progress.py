@@ -52,6 +52,7 @@ class ProgressState:
     animated: bool = False
     message: str = ""
     label: str | None = None
+    record: RunRecord | None = None
     titled: float = -1e9
 
 
@@ -161,7 +162,7 @@ class ProgressPanel:
         self.gui.cancel_button.disabled = True
         self._title(PLAIN_TITLE)
         self.finish(history)
-        self.forget_changed()
+        self.forget_changed(history)
 
     def finish(self, history: Sequence[RunRecord]) -> None:
         """After a long step: show its last snapshot and how it ended (it may stop early, converged)."""
@@ -171,7 +172,7 @@ class ProgressPanel:
             record = next((r for r in reversed(history) if r.step == state.step), None)
             if record is None:
                 continue
-            state.finished = True
+            state.finished, state.record = True, record
             if record.status == "ok":
                 state.fraction = 1.0
             state.message = f"{state.message} — **{record.status}**"
@@ -179,14 +180,18 @@ class ProgressPanel:
             widgets = self.widgets(state.step)
             state.label = None if widgets is None else widgets.folder.label
 
-    def forget_changed(self) -> None:
-        """Hide the progress of finished runs whose step's label changed since (reset, stale, re-run)."""
+    def forget_changed(self, history: Sequence[RunRecord] | None = None) -> None:
+        """Hide the progress of finished runs whose step's label changed since (reset, stale), or that ran
+        again without progress (``history``: its last record of the step is another)."""
         for step, state in list(self.states.items()):
             widgets = self.widgets(step)
-            if not state.finished or widgets is None or widgets.folder.label == state.label:
+            if not state.finished or widgets is None:
+                continue
+            latest = None if history is None else next((r for r in reversed(history) if r.step == step), None)
+            if widgets.folder.label == state.label and (history is None or latest is state.record):
                 continue
             widgets.show(False)
-            del self.states[step]
+            self.states.pop(step, None)
 
 
 __all__ = ["PREVIEW_SECONDS", "PROGRESS_SECONDS", "TITLE_SECONDS", "ProgressPanel", "ProgressState",

@@ -4,6 +4,7 @@ the loss plot's x axis ends at the iterations run, and a log axis has no "0" tic
 
 from __future__ import annotations
 
+import dataclasses
 from collections.abc import Generator
 from typing import Annotated
 
@@ -114,6 +115,16 @@ def test_a_reset_upstream_hides_a_finished_downstream_runs_progress(view):
     assert not view.rows["lift"].progress.text.visible
 
 
+def test_a_rerun_without_progress_hides_the_old_runs(view):
+    view.press("lift", "Run to here")
+    progress = view.rows["lift"].progress
+    assert progress.text.visible
+    again = dataclasses.replace(view.session.history[-1])  # lift ran again (a student's code) without snapshots
+    view.session.history.append(again)
+    view.refresh(force=True)
+    assert view.rows["lift"].folder.label.endswith("done") and not progress.text.visible
+
+
 # --- a Levenberg-Marquardt-like step: converged after 7 of at most 100 iterations -------------------
 @step_result
 class Fitted:
@@ -170,3 +181,12 @@ def test_a_linear_axis_is_left_to_uplot():
     scales, axes = chart_axes(np.arange(3.0), np.array([1.0, 2.0, 3.0]))
     assert axes is None and "y" not in scales and scales["x"]["range"] == [0.0, 2.0]
     assert chart_axes(np.array([4.0]), np.array([1.0]))[0]["x"]["range"] == [4.0, 5.0]  # one point
+
+
+def test_another_session_starts_with_no_progress_shown(view, store):
+    view.press("lift", "Run to here")
+    view.open_session(store.create(TOY))
+    progress = view.rows["lift"].progress
+    assert not progress.text.visible and view.progress.states == {}
+    view.press("lift", "Run to here")
+    assert progress.text.visible and "**ok**" in progress.text.content
