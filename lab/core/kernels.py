@@ -210,7 +210,8 @@ def _warm_one(entry: WarmUp) -> WarmUpStatus:
         else:
             failure = None
     compiled = compile_seconds(recording.buffer)
-    per_kernel = tuple(sorted((name, round(value, 3)) for name, value in compiled.items()))
+    per_kernel = tuple(sorted((name, round(value, 3)) for name, value in compiled.items()
+                              if name.endswith("_kernel")))  # ours (``_x_kernel``), not numba's own overloads
     status = WarmUpStatus("failed" if failure else "done", time.perf_counter() - start, failure, per_kernel)
     with _WARM_LOCK:
         _STATUS[entry.module] = status

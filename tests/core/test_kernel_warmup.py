@@ -46,6 +46,7 @@ def test_the_warm_up_compiles_every_registered_kernel(warmed: dict[str, kernels.
         status = kernels.kernel_warmup_status()[name]
         assert status.state == "done", status.error
         assert status.seconds is not None and status == warmed[name]
+        assert all(kernel.endswith("_kernel") and seconds > 0 for kernel, seconds in status.kernel_seconds)
         entry = kernels.warm_ups()[name]
         assert entry.kernels and entry.steps
         assert [k.py_func.__name__ for k in entry.kernels if not k.signatures] == []
