@@ -30,6 +30,7 @@ import numpy as np
 
 from lab.core.values import (Cameras, Curve, GaussianSplats, Image, ImageSet, Mesh, PointCloud, Points2D,
                              Segments2D, Segments3D)
+from lab.viewer.plots import chart_axes
 
 #: Root of every node this module adds to a scene.
 SCENE_ROOT = "/lab"
@@ -656,8 +657,8 @@ class CurveRenderer(Renderer):
 def uplot_config(curve: Curve, name: str = "") -> dict[str, Any]:
     """Keyword arguments of ``gui.add_uplot`` for a line or scatter :class:`Curve`.
 
-    The y axis is logarithmic when every value is positive and they span more than two decades
-    (a loss curve).
+    The y axis is logarithmic, labelled per decade, when every value is positive and they span decades (a
+    loss curve, a noise schedule: :func:`lab.viewer.plots.chart_axes`); the x axis ends at the last x.
     """
     palette = ("#1f77b4", "#ff7f0e", "#2ca02c", "#d62728", "#9467bd")
     series: list[dict[str, Any]] = [{"label": curve.xlabel or "x"}]
@@ -667,18 +668,16 @@ def uplot_config(curve: Curve, name: str = "") -> dict[str, Any]:
         if curve.kind == "scatter":
             entry.update(width=0, points={"show": True, "size": 5, "fill": palette[s % len(palette)]})
         series.append(entry)
-    y = curve.y[np.isfinite(curve.y)]
-    scales: dict[str, Any] = {"x": {"time": False}}
-    if y.size and y.min() > 0 and y.max() / y.min() > 100:
-        scales["y"] = {"distr": 3, "log": 10}
+    scales, axes = chart_axes(curve.x, curve.y)  # log axes labelled per decade (uPlot: 1e-4 reads "0")
+    scales["x"] = {**scales["x"], "time": False}
     return {"data": (curve.x.astype(np.float64), *[row.astype(np.float64) for row in curve.y]),
-            "series": tuple(series), "scales": scales}
+            "series": tuple(series), "scales": scales, "axes": axes}
 
 
 def add_uplot(gui: Any, curve: Curve, *, title: str, order: float | None = None, name: str = "") -> Any:
     config = uplot_config(curve, name)
-    return gui.add_uplot(config["data"], config["series"], scales=config["scales"], title=title, aspect=1.6,
-                         order=order)
+    return gui.add_uplot(config["data"], config["series"], scales=config["scales"], axes=config["axes"],
+                         title=title, aspect=1.6, order=order)
 
 
 #: The renderer of every drawable type. Points2D and Segments2D are overlays: they have none of

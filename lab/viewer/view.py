@@ -429,6 +429,7 @@ class ClientView:
                 row.note.content = stale_note(spec, session.ran_with.get(spec.name), shown.get(spec.name)) \
                     if stale else ""
                 row.note.visible = stale
+            self.progress.forget_changed()  # a reset or stale step's old progress goes at once
             return status
 
     def _mark(self, step: str, status: str) -> None:
