@@ -76,6 +76,7 @@ class ClientView:
         self._synced: dict[str, dict[str, Any]] = {}  # per step, the ran_with its widgets were set to
         self._syncing = False  # the code is setting widgets (their callbacks must not mark anything stale)
         self._marked: str | None = None  # the step labelled "running"
+        self._marked_status = "running"  # its label (the runner's: "running", or the compiling notice)
         self._step_handles: list[Any] = []
         self._dataset_option_handles: dict[str, Any] = {}
         #: The module's special interactions for the session shown (:mod:`lab.viewer.interactions`).
@@ -423,7 +424,7 @@ class ClientView:
                 row = self.rows.get(spec.name)
                 if row is None:
                     continue
-                label = "running" if spec.name == self._marked else status[spec.name]
+                label = self._marked_status if spec.name == self._marked else status[spec.name]
                 row.folder.label = step_label(index, spec, label)
                 stale = status[spec.name] == "stale"
                 row.note.content = stale_note(spec, session.ran_with.get(spec.name), shown.get(spec.name)) \
@@ -438,7 +439,7 @@ class ClientView:
             row, session = self.rows.get(step), self.session
             if row is None or session is None:
                 return
-            self._marked = step
+            self._marked, self._marked_status = step, status
             index = [s.name for s in session.pipeline.steps].index(step)
             row.folder.label = step_label(index, row.spec, status)
 
