@@ -15,13 +15,15 @@ from lab.core import SessionStore
 from lab.lessons.service import LessonService
 from lab.lessons.store import SubmissionQueue
 
-SUMMARY = ("Estimate the **fundamental matrix** with `normalize=True`; see [the notes](https://example.org/n) "
-           "and [this](javascript:alert(1)). <img src=x onerror=\"window.hacked=1\"> <b>not bold</b>")
+SUMMARY = ("Estimate the **fundamental matrix** with `normalize=True`; "
+           "see [the notes](https://example.org/n) and [this](javascript:alert(1)). "
+           "<img src=x onerror=\"window.hacked=1\"> <b>not bold</b>")
 LESSONS = [{"id": "02-epipolar", "title": "Epipolar geometry", "summary": SUMMARY, "module": "epipolar",
             "module_title": "Epipolar geometry", "url": "/api/lessons/02-epipolar", "available": True,
             "tasks": [{"name": "f", "title": "The 8-point algorithm", "step": "f", "points": 10}]},
            {"id": "04-sfm", "title": "Structure from motion", "summary": "PnP `x`", "available": True,
-            "module": "lab.modules.sfm_basics:PIPELINE", "module_title": "Structure from motion: the building blocks",
+            "module": "lab.modules.sfm_basics:PIPELINE",
+            "module_title": "Structure from motion: the building blocks",
             "url": "/api/lessons/04-sfm", "tasks": []}]
 
 

@@ -65,7 +65,7 @@ def _unfold(page, label: re.Pattern[str], inside: str):
         title.click()
         try:
             target.wait_for(state="visible", timeout=3000)
-        except Exception:  # noqa: BLE001 - folded again or redrawn: try once more
+        except Exception:  # folded again or redrawn: try once more
             continue
     return target
 
@@ -88,7 +88,7 @@ def _run_to_here(page, label: re.Pattern[str]) -> None:
 
 @pytest.mark.parametrize("lesson_id", LESSONS)
 def test_a_lesson_card_opens_lesson_mode_and_the_starter_fails_visibly(lab, chromium, lesson_id, tmp_path):
-    api_url, viewer_url = lab
+    api_url, _viewer = lab
     lesson = CATALOG.get(lesson_id)
     task = lesson.tasks[0]
     names = [spec.name for spec in lesson.pipeline.steps]
@@ -118,7 +118,8 @@ def test_a_lesson_card_opens_lesson_mode_and_the_starter_fails_visibly(lab, chro
         page.screenshot(path=str(tmp_path / f"{lesson_id}-failed.png"))
         session_id = re.search(r"session=(\w+)", page.url).group(1)
         history = httpx.get(f"{api_url}/api/sessions/{session_id}", timeout=30).json()["history"]
-        assert (history[-1]["step"], history[-1]["status"], history[-1]["replaced"]) == (task.step, "failed", True)
+        last = history[-1]
+        assert (last["step"], last["status"], last["replaced"]) == (task.step, "failed", True)
         assert errors == []
     finally:
         page.screenshot(path=str(tmp_path / f"{lesson_id}-last.png"))

@@ -258,7 +258,8 @@ def test_a_step_the_students_code_failed_reads_failed_while_folded(server, store
     assert "✗ failed" in row.folder.label and "ready" not in row.folder.label
     assert mode.banner.visible and "Your code failed" in mode.banner.content
     assert "not implemented yet" in mode.banner.content and HOMOGRAPHIES in mode.banner.content
-    assert mode.status_of(HOMOGRAPHIES, "ready") == "failed" and mode.status_of(INTRINSICS, "blocked") == "blocked"
+    assert mode.status_of(HOMOGRAPHIES, "ready") == "failed"
+    assert mode.status_of(INTRINSICS, "blocked") == "blocked"
 
     row.use_mine.value = False  # the reference's step works: the failure is gone
     view.press(HOMOGRAPHIES, "Run")
