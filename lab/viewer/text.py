@@ -19,7 +19,7 @@ from lab.core.values import VALUE_TYPES
 from lab.viewer.renderers import OVERLAY_TYPES
 
 #: The mark in a step's folder label for each status it can show (``running`` is the viewer's own).
-STATUS_MARK = {"done": "✓", "stale": "↻", "ready": "›", "blocked": "·", "running": "…"}
+STATUS_MARK = {"done": "✓", "stale": "↻", "ready": "›", "blocked": "·", "running": "…", "failed": "✗"}
 
 
 def format_number(value: Any) -> str:
@@ -100,8 +100,9 @@ def history_markdown(history: Sequence[RunRecord], limit: int = 12) -> str:
 
 def step_label(index: int, spec: StepSpec, status: str) -> str:
     """The label of a step's folder: its number, title, status mark and status
-    (``2. Mean intensity ✓ done``)."""
-    return f"{index + 1}. {spec.title} {STATUS_MARK.get(status, '')} {status}"
+    (``2. Mean intensity ✓ done``; in lesson mode ``2. Homographies ✗ failed: your code failed``)."""
+    label = f"{index + 1}. {spec.title} {STATUS_MARK.get(status, '')} {status}"
+    return label + (": your code failed" if status == "failed" else "")  # lesson mode: a student's step
 
 
 def stale_note(spec: StepSpec, ran_with: Mapping[str, Any] | None, shown: Mapping[str, Any] | None) -> str:

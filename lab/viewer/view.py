@@ -425,6 +425,8 @@ class ClientView:
                 if row is None:
                     continue
                 label = self._marked_status if spec.name == self._marked else status[spec.name]
+                if self.lesson_mode is not None:  # a student's failed step stays failed until it works
+                    label = self.lesson_mode.status_of(spec.name, label)
                 row.folder.label = step_label(index, spec, label)
                 stale = status[spec.name] == "stale"
                 row.note.content = stale_note(spec, session.ran_with.get(spec.name), shown.get(spec.name)) \
