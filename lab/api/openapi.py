@@ -3,7 +3,6 @@
 * Error responses are JSON on every route. FastAPI files an error response's model under the
   route's own media type, so the event stream's and the starter file's errors read as
   ``text/event-stream`` and ``text/x-python``; they are moved under ``application/json``.
-* An event stream's response is described by its events (``itemSchema``) only.
 * ``module`` (of ``POST /api/sessions`` and ``GET /api/modules/{module}``) lists the served modules.
 * OpenAPI links say which response field feeds which path parameter: a new session's ``id`` every
   ``/api/sessions/{session_id}/...`` route, a submission's ``id`` its status, a lesson's ``id`` its
@@ -57,7 +56,6 @@ def install_openapi(app: FastAPI, *, module_names: Sequence[str]) -> None:
 def refine(document: dict[str, Any], module_names: Sequence[str]) -> None:
     """JSON error bodies, the module enum and the links, in place."""
     json_errors(document)
-    event_streams(document)
     module_enum(document, module_names)
     add_links(document)
 
@@ -75,17 +73,6 @@ def json_errors(document: dict[str, Any]) -> None:
             if status[:1] not in ("4", "5") or not content or JSON in content:
                 continue
             response["content"] = {JSON: next(iter(content.values()))}
-
-
-def event_streams(document: dict[str, Any]) -> None:
-    """An event stream is described by its events (``itemSchema``): drop the ``schema: string`` FastAPI adds
-    for a streaming response class, which reads as if the whole stream were one string (a validator checks the
-    parsed events against it)."""
-    for operation in _operations(document).values():
-        for response in operation["responses"].values():
-            stream = response.get("content", {}).get("text/event-stream")
-            if isinstance(stream, dict) and "itemSchema" in stream:
-                stream.pop("schema", None)
 
 
 def module_enum(document: dict[str, Any], module_names: Sequence[str]) -> None:

@@ -13,19 +13,14 @@ client, 503 for the server) and never evict one in use.
 from __future__ import annotations
 
 import asyncio
-import contextlib
 import json
-import time
-from collections.abc import AsyncIterator
+from collections.abc import AsyncIterable
 from functools import partial
 from typing import Annotated, Any
 from urllib.parse import urlencode
 
 from fastapi import APIRouter, Body, Path, Query, Request, Response
-from fastapi.sse import KEEPALIVE_COMMENT, ServerSentEvent, format_sse_event
-from starlette.requests import ClientDisconnect
-from starlette.responses import StreamingResponse
-from starlette.types import Receive, Scope, Send
+from fastapi.sse import EventSourceResponse, ServerSentEvent
 from pydantic import BaseModel, ConfigDict, Field
 
 from lab.api.deps import CatalogDep, ClientDep, PoolsDep, SessionDep, StoreDep
@@ -287,55 +282,19 @@ def cancel_run(request: Request, session: SessionDep) -> LabJSONResponse:
                            status_code=202)
 
 
-#: Seconds without an event after which the stream sends a keep-alive comment.
-KEEPALIVE_SECONDS = 15.0
-#: The OpenAPI item schema of an event (as FastAPI documents its own event streams).
-_SSE_ITEM_SCHEMA = {"type": "object", "properties": {"data": {"type": "string"}, "event": {"type": "string"},
-                                                     "id": {"type": "string"},
-                                                     "retry": {"type": "integer", "minimum": 0}}}
+def _event(name: str, data: dict[str, Any], event_id: str | None = None) -> ServerSentEvent:
+    return ServerSentEvent(event=name, raw_data=json.dumps(jsonable(data), allow_nan=False), id=event_id)
 
 
-class EventStream(StreamingResponse):
-    """A ``text/event-stream`` response of pre-encoded events; a client that hangs up ends it quietly.
-
-    The route streams its own events rather than through FastAPI's ``EventSourceResponse`` generator
-    machinery: that one forwards events through a keep-alive task which raises
-    ``anyio.BrokenResourceError`` (logged with a long traceback) when a client disconnects while
-    events are waiting to be written.
-    """
-
-    media_type = "text/event-stream"
-
-    def __init__(self, content: AsyncIterator[bytes]) -> None:
-        super().__init__(content, headers={"Cache-Control": "no-cache", "X-Accel-Buffering": "no"})
-
-    async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
-        with contextlib.suppress(ClientDisconnect):  # ASGI 2.4 servers: the hang-up is a failed send
-            await super().__call__(scope, receive, send)
-
-
-def _event(name: str, data: dict[str, Any], event_id: str | None = None) -> bytes:
-    event = ServerSentEvent(event=name, raw_data=json.dumps(jsonable(data), allow_nan=False), id=event_id)
-    return format_sse_event(data_str=event.raw_data, event=event.event, id=event.id)
-
-
-@router.get("/{session_id}/events", response_class=EventStream, status_code=200,
-            summary="Stream a run's progress",
-            responses={200: {"description": "The run's events.",
-                             "content": {"text/event-stream": {"itemSchema": _SSE_ITEM_SCHEMA}}}},
+@router.get("/{session_id}/events", response_class=EventSourceResponse, summary="Stream a run's progress",
             description="Server-sent events of the latest run in the session: `progress` events "
                         "(`{step, iteration, total, loss, message}`) while it runs, then one `done` event "
                         "(the same JSON as the synchronous answer) or `error` event (`{error, field, reason, "
                         "step}`), and the stream ends. A client that connects after the run is over gets its "
                         "retained events again; when nothing has run, one `idle` event (or the outcome of "
-                        "the last recorded run). A comment line keeps a quiet stream alive.")
-async def stream_events(request: Request, session: SessionDep) -> EventStream:
+                        "the last recorded run).")
+async def stream_events(request: Request, session: SessionDep) -> AsyncIterable[ServerSentEvent]:
     monitor: RunMonitor = request.app.state.runs.monitor(session)
-    return EventStream(_run_events(monitor, session))
-
-
-async def _run_events(monitor: RunMonitor, session: Session) -> AsyncIterator[bytes]:
-    """The encoded events of the session's latest run (see :func:`stream_events`)."""
     after = 0
     run_id, events, active = monitor.poll(after)
     if not active and (run_id == 0 or len(session.history) > monitor.history_at_finish):
@@ -345,19 +304,14 @@ async def _run_events(monitor: RunMonitor, session: Session) -> AsyncIterator[by
         else:
             yield _event("idle", {"session": session.id, "running": session.running})
         return
-    last_sent = time.monotonic()
     while True:
         for seq, name, data in events:
             after = seq
             yield _event(name, data, f"{run_id}:{seq}")
-            last_sent = time.monotonic()
             if name in ("done", "error"):
                 return
         if not active:
             return
-        if time.monotonic() - last_sent >= KEEPALIVE_SECONDS:
-            yield KEEPALIVE_COMMENT
-            last_sent = time.monotonic()
         await asyncio.sleep(POLL_SECONDS)
         current, events, active = monitor.poll(after)
         if current != run_id:  # a new run began before this one's end was seen (events dropped)
