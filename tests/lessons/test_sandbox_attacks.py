@@ -173,7 +173,7 @@ def _host_processes_with(text: str) -> list[int]:
     return found
 
 
-def _host_processes_left(text: str, *, within_s: float = 5.0) -> list[int]:
+def _host_processes_left(text: str, *, within_s: float = 15.0) -> list[int]:
     """Host processes whose command line holds ``text``, once the kernel has had ``within_s`` to tear a
     namespace down (its processes are killed when its pid 1 ends, not at the instant the grader returns)."""
     deadline = time.monotonic() + within_s
