@@ -338,7 +338,6 @@ class Grader:
         self.data = {name: [DataRun(self.pipeline, data, variant_seed, reseeder(lesson, name, seed, k),
                                     variant=k) for k, variant_seed in enumerate(seeds[name])]
                      for name, data in lesson.datasets.items()}
-        self.alternatives: dict[str, Callable[..., Any]] = {}  # extra alternatives by name (mutation tests)
         # the order the variants of a dataset are graded in (tests: the grade must not depend on it)
         self.variant_order = variant_order or (lambda count: list(range(count)))
         self.reference_runs: dict[tuple, StepRun] = {}
@@ -576,10 +575,7 @@ class Grader:
         return run
 
     def _alternative_function(self, spec: StepSpec, name: str) -> Callable[..., Any]:
-        """A function of the lesson's ``mistakes.py``, a generic mutant of the step by its name, or one the
-        grader was given (:attr:`alternatives`: mutation testing)."""
-        if name in self.alternatives:
-            return self.alternatives[name]
+        """A function of the lesson's ``mistakes.py`` or a generic mutant of the step, by its name."""
         if name in self.lesson.mistakes:
             return self.lesson.mistakes[name]
         for mutant in mutants_module.generic_mutants(spec.func):
@@ -627,7 +623,7 @@ class Grader:
             return found
         named = {rule.options.get("mistake") for rule in check.hints if rule.when == "same_as_mistake"}
         for name in self.lesson.mistakes:
-            if name in named or not _takes_parameters_of(self.lesson.mistakes[name],
+            if name in named or not takes_parameters_of(self.lesson.mistakes[name],
                                                          self.pipeline.step(task.step)):
                 continue
             alternative = self._alternative_value(task, where, params, name)
@@ -745,7 +741,7 @@ class Grader:
         finite = isinstance(got, np.ndarray) and got.dtype.kind in "biuf" and bool(np.all(np.isfinite(got)))
         if finite and got.shape != np.shape(_primary_or_self(expected)):
             for name in self.lesson.mistakes:
-                if not _takes_parameters_of(self.lesson.mistakes[name], self.pipeline.step(task.step)):
+                if not takes_parameters_of(self.lesson.mistakes[name], self.pipeline.step(task.step)):
                     continue
                 alternative = _primary_or_self(self._alternative_value(task, where, params, name))
                 if not isinstance(alternative, np.ndarray) or alternative.shape != got.shape:
@@ -817,7 +813,7 @@ def _primary_or_self(value: Any) -> Any:
         return value
 
 
-def _takes_parameters_of(function: Callable[..., Any], spec: StepSpec) -> bool:
+def takes_parameters_of(function: Callable[..., Any], spec: StepSpec) -> bool:
     """Whether a function of mistakes.py has the step's parameters (it is a mistake of that task)."""
     try:
         parameters = list(inspect.signature(function).parameters)

@@ -296,10 +296,5 @@ def mistake_mutant(name: str, function: Callable[..., Any]) -> Mutant:
                   lambda reference: function)
 
 
-def applies(mutant: Mutant, reference: Callable[..., Any], args: tuple, kwargs: dict[str, Any]) -> Any:
-    """The mutant's result on one call, or raises :class:`NotApplicable`."""
-    return mutant(reference)(*args, **kwargs)
-
-
-__all__ = ["Mutant", "NotApplicable", "applies", "generic_mutants", "mistake_mutant", "primary_array",
+__all__ = ["Mutant", "NotApplicable", "generic_mutants", "mistake_mutant", "primary_array",
            "transform"]

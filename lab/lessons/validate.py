@@ -27,7 +27,7 @@ import numpy as np
 from lab.core.step import StepSpec
 from lab.lessons import mutants as mutants_module
 from lab.lessons.format import Check, Lesson, Task
-from lab.lessons.grader import DataRun, Grader, ReferenceSubmission, StepRun, draw_seeds
+from lab.lessons.grader import DataRun, Grader, ReferenceSubmission, StepRun, draw_seeds, takes_parameters_of
 from lab.lessons.sandbox import CallResult
 
 #: The assignment seed mutation tests draw the check data from (any fixed seed: the report is reproducible).
@@ -122,12 +122,9 @@ class _MutantSubmission(ReferenceSubmission):
 
 def task_mutants(lesson: Lesson, spec: StepSpec) -> list[mutants_module.Mutant]:
     """The generic mutants of the step and the functions of ``mistakes.py`` with its parameters."""
-    import inspect
-
     found = list(mutants_module.generic_mutants(spec.func))
-    wanted = list(inspect.signature(spec.func).parameters)
     for name, function in lesson.mistakes.items():
-        if list(inspect.signature(function).parameters) == wanted:
+        if takes_parameters_of(function, spec):
             found.append(mutants_module.mistake_mutant(name, function))
     return found
 
@@ -171,13 +168,11 @@ class _SharedData:
         self.data: dict[str, list[DataRun]] = probe.data
         self.reference_runs: dict[tuple, StepRun] = probe.reference_runs
 
-    def grader(self, submission: ReferenceSubmission, *,
-               alternatives: dict[str, Any] | None = None) -> Grader:
+    def grader(self, submission: ReferenceSubmission) -> Grader:
         limits = self.lesson.limits.replace(total_timeout_s=1e9, call_timeout_s=1e9)
         grader = Grader(self.lesson, submission, seeds=self.seeds, limits=limits, reference=True,
                         seed=self.seed)
         grader.data, grader.reference_runs = self.data, self.reference_runs
-        grader.alternatives.update(alternatives or {})
         return grader
 
 

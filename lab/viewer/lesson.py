@@ -44,7 +44,7 @@ from lab.lessons.format import Lesson, LessonCatalog, Task
 from lab.lessons.live import SideBySide, StudentCode, StudentCodeFailed
 from lab.viewer.gui import MEDIA_PANEL_WIDTH
 from lab.viewer.renderers import OVERLAY_TYPES, Canvas, StateDrawer, renderer_for
-from lab.viewer.text import cell, error_text, format_number, value_summary
+from lab.viewer.text import cell, error_text, format_number, step_label, value_summary
 
 log = logging.getLogger("lab.viewer.lesson")
 
@@ -70,11 +70,6 @@ def lesson_summary(lesson: Lesson) -> str:
 
 #: What a task step reads when the student's code failed in it (and its outputs are not there).
 FAILED = "failed"
-
-
-def failed_label(index: int, title: str) -> str:
-    """The folder label of a task step whose student code failed, readable while the step is folded."""
-    return f"{index + 1}. {title} ✗ {FAILED}: your code failed"
 
 
 def failure_banner(task: Task, reason: str) -> str:
@@ -595,7 +590,7 @@ class LessonMode:
             if self.status_of(step, session.step_status().get(step, "ready")) != FAILED:
                 return
             names = [spec.name for spec in session.pipeline.steps]
-            folder.label = failed_label(names.index(step), session.pipeline.step(step).title)
+            folder.label = step_label(names.index(step), session.pipeline.step(step), FAILED)
 
     # --- comparing -------------------------------------------------------------------------------
     def compare(self, step: str) -> None:
@@ -681,5 +676,5 @@ class LessonMode:
 
 
 __all__ = ["FAILED", "NO_LESSON", "LessonMode", "TaskRow", "array_comparison", "code_status",
-           "comparison_markdown", "failed_label", "failure_banner", "lesson_summary", "side_by_side_state",
+           "comparison_markdown", "failure_banner", "lesson_summary", "side_by_side_state",
            "upload_text"]
