@@ -1,0 +1,89 @@
+"""Neural radiance fields made watchable on a CPU: rays, positional encoding, volume rendering, hierarchical
+sampling and training, step by step.
+
+Reference: B. Mildenhall, P. P. Srinivasan, M. Tancik, J. T. Barron, R. Ramamoorthi, R. Ng, "NeRF:
+Representing scenes as neural radiance fields for view synthesis", ECCV 2020 (section 4: volume
+rendering, eqs. 1-3; section 5.1: positional encoding; section 5.2: hierarchical volume sampling;
+section 5.3: training; appendix A: the network).
+
+Conventions: cameras are the lab's OpenCV cameras (``X_c = R X_w + t``, pixel (0, 0) the centre of
+the top-left pixel); OpenGL ``transforms.json`` poses are converted by the one reader
+(:mod:`lab.data.transforms_json`) at the edge. A ray's direction has camera-frame z = 1, so depths
+``t`` along it are camera depths Z (those of the shared renderer). Networks run in float32 on
+``device`` (CPU by default, CUDA when the runner gives it); randomness comes from the step's ``rng``.
+
+The package (this file is its only import surface):
+
+    steps.py       the steps in pipeline order, each with its result class
+    values.py      the values between steps: SceneBounds, RayBundle, EncodingConfig, NerfCheckpoint
+    rays.py        rays from poses, stratified samples
+    encoding.py    the positional encoding gamma(p)
+    rendering.py   volume rendering (weights, colour, depth, opacity) and inverse-CDF sampling
+    model.py       the NeRF MLP and rendering rays and images through it
+    training.py    the training loop (a generator yielding progress and previews)
+    reference.py   slow readable loop versions of the fast functions: the tests' oracles
+    evaluate.py    PSNR, SSIM, depth error of held-out views
+    datasets.py    a synthetic object (exact depth) and the NeRF-synthetic layout
+
+State names:
+    images          ImageSet        the training views (RGB, composited on white)
+    cameras         Cameras         their cameras (carrying ``images``)
+    test_cameras    Cameras         the held-out poses
+    bounds          SceneBounds     near / far depths, the centre and radius positions are normalized by
+    rays            RayBundle       one ray per training pixel, with its colour
+    ray_lines       Segments3D      a few of them, near to far, in their pixel's colour
+    encoding        EncodingConfig  L for positions and directions, identity or not
+    encoding_plot   Curve           p and sin(2^k pi p) over [-1, 1]
+    model           NerfCheckpoint  the trained network's weights and configuration
+    loss_curve      Curve           the photometric loss over iterations
+    psnr_curve      Curve           the batch PSNR over iterations
+    preview         Image           training view 0 rendered by the final model (at most 64 px)
+    test_renders    ImageSet        every held-out view rendered
+    test_depth      (V, H, W)       their expected depths
+    test_opacity    (V, H, W)       their opacities
+    rendered, depth_map, opacity_map  Image   one held-out view, its depth (near black, far white), opacity
+    ray_weights     Curve           the weights w_i along one pixel's ray
+Truth: ``test_images`` ``(V, H, W, 3)``; the synthetic object also ``test_depths``, ``train_depths``.
+"""
+
+from __future__ import annotations
+
+from lab.core import Pipeline
+from lab.modules.nerf.datasets import hemisphere_cameras, nerf_synthetic, object_scene, synthetic_object
+from lab.modules.nerf.encoding import encoding_size, positional_encoding
+from lab.modules.nerf.evaluate import EVALUATIONS, depth_error, evaluate_held_out, image_psnr, image_ssim
+from lab.modules.nerf.model import (DENSITY_SHIFT, NerfMLP, RayRendering, network_from, render_image,
+                                    render_rays)
+from lab.modules.nerf.rays import camera_rays, cameras_rays, pixel_centres, scaled_cameras, stratified_samples
+from lab.modules.nerf.reference import (camera_rays_reference, positional_encoding_reference,
+                                        sample_pdf_reference, stratified_samples_reference,
+                                        volume_render_reference)
+from lab.modules.nerf.rendering import (VolumeRendering, hierarchical_samples, interval_lengths, sample_pdf,
+                                        volume_render)
+from lab.modules.nerf.steps import (encode_positions, generate_rays, render_held_out, render_view,
+                                    train_nerf)
+from lab.modules.nerf.values import EncodingConfig, FieldConfig, NerfCheckpoint, RayBundle, SceneBounds
+
+PIPELINE = Pipeline.build(
+    name="nerf",
+    title="Neural radiance fields",
+    summary="NeRF step by step on a CPU: rays through every pixel, the positional encoding, an MLP of "
+            "density and colour trained by volume rendering (stratified and hierarchical samples), then "
+            "held-out views rendered and compared (PSNR, SSIM, depth error).",
+    steps=[generate_rays, encode_positions, train_nerf, render_held_out, render_view],
+    datasets=[synthetic_object, nerf_synthetic],
+    evaluations=EVALUATIONS,
+    views=["model", "test_cameras", "bounds"],
+)
+
+__all__ = [
+    "DENSITY_SHIFT", "EVALUATIONS", "PIPELINE", "EncodingConfig", "FieldConfig", "NerfCheckpoint", "NerfMLP",
+    "RayBundle", "RayRendering", "SceneBounds", "VolumeRendering", "camera_rays", "camera_rays_reference",
+    "cameras_rays", "depth_error", "encode_positions", "encoding_size", "evaluate_held_out", "generate_rays",
+    "hemisphere_cameras", "hierarchical_samples", "image_psnr", "image_ssim", "interval_lengths",
+    "nerf_synthetic", "network_from", "object_scene", "pixel_centres", "positional_encoding",
+    "positional_encoding_reference", "render_held_out", "render_image", "render_rays", "render_view",
+    "sample_pdf", "sample_pdf_reference", "scaled_cameras", "stratified_samples",
+    "stratified_samples_reference", "synthetic_object", "train_nerf", "volume_render",
+    "volume_render_reference",
+]

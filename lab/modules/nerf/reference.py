@@ -1,0 +1,110 @@
+"""The readable versions of NeRF's fast functions: the tests' oracles (gsplat's ``_torch_impl`` pattern).
+
+Each ``x_reference`` computes what the public vectorized torch function ``x`` computes, in NumPy and
+plain Python loops (one camera, ray, sample or frequency at a time), slowly, in float64, written as the
+paper writes it (Mildenhall et al. 2020): products where the fast code uses sums of logarithms,
+explicit searches where it uses ``searchsorted``.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+
+def camera_rays_reference(K: np.ndarray, R: np.ndarray, t: np.ndarray,
+                          pixels: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`~lab.modules.nerf.rays.camera_rays`: for each camera and pixel ``(u, v)``, solve
+    ``K x = (u, v, 1)`` for the camera-frame direction ``x`` (z = 1), rotate it into the world with
+    ``R^T`` and start it at the centre ``-R^T t``. Returns ``(V, M, 3)`` origins and directions."""
+    views, count = len(K), len(pixels)
+    origins, directions = np.zeros((views, count, 3)), np.zeros((views, count, 3))
+    for v in range(views):
+        centre = -R[v].T @ t[v]
+        for m in range(count):
+            x = np.linalg.solve(K[v], np.array([pixels[m][0], pixels[m][1], 1.0]))
+            origins[v, m] = centre
+            directions[v, m] = R[v].T @ x
+    return origins, directions
+
+
+def stratified_samples_reference(near: float, far: float, u: np.ndarray) -> np.ndarray:
+    """:func:`~lab.modules.nerf.rays.stratified_samples` with the uniform draws ``u`` ``(R, N)`` given:
+    sample ``i`` of a ray lies at fraction ``u`` of the ``i``-th of ``N`` equal bins of ``[near, far]``."""
+    rays, count = u.shape
+    out = np.zeros((rays, count))
+    width = (far - near) / count
+    for r in range(rays):
+        for i in range(count):
+            out[r, i] = near + i * width + u[r, i] * width
+    return out
+
+
+def positional_encoding_reference(p: np.ndarray, frequencies: int, *,
+                                  include_input: bool = True) -> np.ndarray:
+    """:func:`~lab.modules.nerf.encoding.positional_encoding` of ``p`` ``(N, D)``: ``p``, then for each
+    ``k < L`` the block ``sin(2^k pi p_d)`` over ``d`` and the block ``cos(2^k pi p_d)``."""
+    rows = []
+    for point in np.asarray(p, dtype=np.float64):
+        row = list(point) if include_input else []
+        for k in range(frequencies):
+            row += [math.sin(2.0 ** k * math.pi * x) for x in point]
+            row += [math.cos(2.0 ** k * math.pi * x) for x in point]
+        rows.append(row)
+    return np.array(rows, dtype=np.float64).reshape(len(rows), -1)
+
+
+def volume_render_reference(sigma: np.ndarray, rgb: np.ndarray, t: np.ndarray, far: float,
+                            direction_norm: np.ndarray | None = None,
+                            background: np.ndarray | None = None) -> dict[str, np.ndarray]:
+    """:func:`~lab.modules.nerf.rendering.volume_render`, one ray and one sample at a time, with the
+    transmittance as the product ``T_i = prod_(j < i) (1 - alpha_j)``. Returns a dict of the
+    :class:`~lab.modules.nerf.rendering.VolumeRendering` fields as float64 arrays."""
+    rays, samples = sigma.shape
+    out = {"color": np.zeros((rays, 3)), "depth": np.zeros(rays), "opacity": np.zeros(rays),
+           "weights": np.zeros((rays, samples)), "transmittance": np.zeros((rays, samples)),
+           "alpha": np.zeros((rays, samples))}
+    back = np.zeros(3) if background is None else np.asarray(background, dtype=np.float64)
+    for r in range(rays):
+        norm = 1.0 if direction_norm is None else float(direction_norm[r])
+        transmittance = 1.0
+        for i in range(samples):
+            following = t[r, i + 1] if i + 1 < samples else far
+            delta = (following - t[r, i]) * norm
+            alpha = 1.0 - math.exp(-sigma[r, i] * delta)
+            weight = transmittance * alpha
+            out["transmittance"][r, i] = transmittance
+            out["alpha"][r, i] = alpha
+            out["weights"][r, i] = weight
+            out["color"][r] += weight * rgb[r, i]
+            out["depth"][r] += weight * t[r, i]
+            out["opacity"][r] += weight
+            transmittance *= 1.0 - alpha
+        out["color"][r] += (1.0 - out["opacity"][r]) * back
+        out["depth"][r] += (1.0 - out["opacity"][r]) * far
+    return out
+
+
+def sample_pdf_reference(edges: np.ndarray, weights: np.ndarray, u: np.ndarray,
+                         epsilon: float = 1e-5) -> np.ndarray:
+    """:func:`~lab.modules.nerf.rendering.sample_pdf` with the uniform draws ``u`` ``(R, K)`` given:
+    normalize the weights into a PDF over the bins, walk the bins accumulating the CDF until the one
+    that holds ``u``, and place the sample linearly inside it."""
+    rays, bins = weights.shape
+    out = np.zeros(u.shape)
+    for r in range(rays):
+        pdf = (weights[r] + epsilon) / np.sum(weights[r] + epsilon)
+        for k, target in enumerate(u[r]):
+            below = 0.0
+            j = 0
+            while j < bins - 1 and below + pdf[j] <= target:
+                below += pdf[j]
+                j += 1
+            fraction = (target - below) / pdf[j] if pdf[j] > 0 else 0.0
+            out[r, k] = edges[r, j] + min(max(fraction, 0.0), 1.0) * (edges[r, j + 1] - edges[r, j])
+    return out
+
+
+__all__ = ["camera_rays_reference", "positional_encoding_reference", "sample_pdf_reference",
+           "stratified_samples_reference", "volume_render_reference"]

@@ -1,0 +1,292 @@
+"""The steps of the NeRF module, in pipeline order: each reads state by name and returns what it writes.
+
+1. :func:`generate_rays`     a ray through every training pixel (OpenCV cameras, pixel centres)
+2. :func:`encode_positions`  the positional encoding gamma(p), shown as curves
+3. :func:`train_nerf`        the MLP trained by volume rendering batches of rays (a generator step)
+4. :func:`render_held_out`   the held-out views rendered (evaluated: PSNR, SSIM, depth error)
+5. :func:`render_view`       one view with its depth and opacity, and the weights along one ray
+
+Reference: B. Mildenhall, P. P. Srinivasan, M. Tancik, J. T. Barron, R. Ramamoorthi, R. Ng, "NeRF:
+Representing scenes as neural radiance fields for view synthesis", ECCV 2020.
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Generator
+from typing import Annotated, Literal
+
+import numpy as np
+import torch
+
+from lab.core import (Cameras, Curve, Image, ImageSet, InvalidControl, InvalidValue, Progress, Range,
+                      Segments3D, metric, step_result)
+from lab.modules.nerf.encoding import encoding_size, positional_encoding
+from lab.modules.nerf.model import (ImageRendering, NerfMLP, checkpoint_from, network_from, render_image,
+                                    render_rays)
+from lab.modules.nerf.rays import cameras_rays, scaled_cameras
+from lab.modules.nerf.training import PreviewRays, TrainingOptions, train_field, training_curves
+from lab.modules.nerf.values import (EncodingConfig, FieldConfig, NerfCheckpoint, RayBundle, SceneBounds,
+                                     as_bounds, as_checkpoint, as_encoding, as_rays)
+
+#: Largest side of the preview rendered while training.
+PREVIEW_SIDE = 64
+
+BACKGROUNDS = {"white": (1.0, 1.0, 1.0), "black": (0.0, 0.0, 0.0)}
+
+
+def _check_views(images: ImageSet, cameras: Cameras) -> np.ndarray:
+    """The training images as one float32 ``(V, H, W, 3)`` array, once they fit their cameras."""
+    if not isinstance(images, ImageSet) or len(images) == 0:
+        raise InvalidValue("images", "expected a non-empty ImageSet of training views")
+    if not isinstance(cameras, Cameras):
+        raise InvalidValue("cameras", f"expected Cameras, got {type(cameras).__name__}")
+    if len(images) != len(cameras):
+        raise InvalidValue("images", f"{len(images)} images for {len(cameras)} cameras: one camera per view")
+    for i, image in enumerate(images.images):
+        if (image.width, image.height) != (cameras.width, cameras.height):
+            raise InvalidValue("images", f"view {i} is {image.width}x{image.height} but the cameras are "
+                                         f"{cameras.width}x{cameras.height}: every view must match its "
+                                         "camera")
+        if image.pixels.ndim != 3:
+            raise InvalidValue("images", f"view {i} is grey: NeRF learns colour images (H, W, 3)")
+    return np.stack([image.pixels for image in images.images])
+
+
+# ----------------------------------------------------------------------------------------------------
+# 1. Rays
+# ----------------------------------------------------------------------------------------------------
+@step_result
+class RaysResult:
+    """Result of :func:`generate_rays`."""
+
+    rays: RayBundle
+    ray_lines: Segments3D
+    ray_count: int = metric("training rays (one per pixel of every view)")
+    views: int = metric("training views")
+
+
+def generate_rays(images: ImageSet, cameras: Cameras, bounds: SceneBounds, *,
+                  lines: Annotated[int, Range(0, 5000)] = 200) -> RaysResult:
+    """A ray through the centre of every training pixel, with the pixel's colour (Mildenhall et al. 2020,
+    section 4; ``get_rays`` of their code, without its half-pixel offset).
+
+    Origin ``-R^T t``, direction ``R^T K^-1 (u, v, 1)`` with pixel ``(j, i)``'s centre at ``(u, v) = (j, i)``
+    (the lab's convention; ``(j + 0.5, i + 0.5)`` where the top-left corner is the origin). A direction's
+    camera-frame z is 1, so the ray parameter is the depth and ``bounds.near`` / ``bounds.far`` are depths.
+    ``ray_lines`` draws ``lines`` of them (evenly picked) from near to far in their pixel's colour.
+
+    Args:
+        lines: rays drawn in 3D.
+    """
+    pixels = _check_views(images, cameras)
+    scene = as_bounds(bounds)
+    origins, directions = cameras_rays(cameras)
+    count = origins.shape[0] * origins.shape[1]
+    views = np.repeat(np.arange(len(cameras)), origins.shape[1])
+    rays = RayBundle(origins.reshape(count, 3).numpy(), directions.reshape(count, 3).numpy(),
+                     pixels.reshape(count, 3), views, scene)
+    pick = np.linspace(0, count - 1, min(lines, count)).astype(np.int64) if lines else np.zeros(0, np.int64)
+    o, d = rays.origins[pick].astype(np.float64), rays.directions[pick].astype(np.float64)
+    drawn = Segments3D(o + scene.near * d, o + scene.far * d, rays.colors[pick])
+    return RaysResult(rays, drawn, count, len(cameras))
+
+
+# ----------------------------------------------------------------------------------------------------
+# 2. Positional encoding
+# ----------------------------------------------------------------------------------------------------
+@step_result
+class EncodingResult:
+    """Result of :func:`encode_positions`."""
+
+    encoding: EncodingConfig
+    encoding_plot: Curve
+    position_features: int = metric("width of gamma(x) for a position")
+    direction_features: int = metric("width of gamma(d) for a view direction")
+
+
+def encode_positions(*, frequencies: Annotated[int, Range(0, 16)] = 6,
+                     direction_frequencies: Annotated[int, Range(0, 8)] = 4,
+                     include_input: bool = True) -> EncodingResult:
+    """The positional encoding ``gamma(p) = (sin(2^k pi p), cos(2^k pi p))``, ``k < L`` (Mildenhall et al.
+    2020, section 5.1; they use L = 10 for positions, 4 for directions; 6 is the classic course project's).
+
+    Without it the MLP is biased towards smooth functions and blurs the scene (their Figure 4). The plot
+    shows ``p`` and ``sin(2^k pi p)`` for one coordinate over the normalized scene ``[-1, 1]``: each
+    frequency doubles.
+
+    Args:
+        frequencies: L for positions.
+        direction_frequencies: L for view directions.
+        include_input: put p itself in front of gamma(p), as the paper's code does.
+    """
+    encoding = EncodingConfig(frequencies, direction_frequencies, include_input)
+    x = np.linspace(-1.0, 1.0, 401)
+    gamma = positional_encoding(torch.as_tensor(x[:, None]), frequencies, include_input=False).numpy()
+    series = [x] + [gamma[:, 2 * k] for k in range(frequencies)]
+    labels = ("p", *(f"sin(2^{k} pi p)" for k in range(frequencies)))
+    plot = Curve(x, np.stack(series), title="positional encoding", xlabel="p (normalized)", ylabel="value",
+                 labels=labels)
+    return EncodingResult(encoding, plot, encoding_size(frequencies, include_input=include_input),
+                          encoding_size(direction_frequencies, include_input=include_input))
+
+
+# ----------------------------------------------------------------------------------------------------
+# 3. Training
+# ----------------------------------------------------------------------------------------------------
+@step_result
+class TrainResult:
+    """Result of :func:`train_nerf`."""
+
+    model: NerfCheckpoint
+    loss_curve: Curve
+    psnr_curve: Curve
+    preview: Image
+    final_loss: float = metric("mean photometric loss over the last 10 % of iterations")
+    train_psnr: float = metric("mean batch PSNR over the last 10 % of iterations", unit="dB")
+    iterations: int = metric("optimizer steps taken")
+    train_seconds: float = metric("training time, previews excluded", unit="s")
+    rays_per_second: float = metric("training rays rendered per second")
+
+
+def train_nerf(rays: RayBundle, encoding: EncodingConfig, cameras: Cameras, *,
+               samples: Annotated[int, Range(2, 512)] = 32, fine_samples: Annotated[int, Range(0, 512)] = 0,
+               hidden: Annotated[int, Range(8, 512)] = 64, layers: Annotated[int, Range(1, 12)] = 4,
+               batch_rays: Annotated[int, Range(1, 65536)] = 1024,
+               learning_rate: Annotated[float, Range(1e-6, 1.0)] = 5e-3,
+               lr_decay: Annotated[float, Range(1e-4, 1.0)] = 0.1,
+               iterations: Annotated[int, Range(1, 1000000)] = 1000,
+               budget_seconds: Annotated[float, Range(0.0, 36000.0)] = 0.0,
+               preview_every: Annotated[int, Range(10, 100000)] = 100,
+               background: Literal["white", "black"] = "white",
+               rng: np.random.Generator, device: str = "cpu") -> Generator[Progress, None, TrainResult]:
+    """Train the radiance field: render random batches of training rays and fit their pixels' colours
+    (Mildenhall et al. 2020, sections 4 and 5.3).
+
+    Each ray gets ``samples`` jittered stratified depths in ``[near, far]`` (eq. 2) and, with
+    ``fine_samples`` > 0, that many more drawn from the coarse weights by inverse-CDF sampling (section
+    5.2); the MLP gives density and colour at every sample and volume rendering (eq. 3) composites them
+    over the ``background``. Adam on the mean squared error; the learning rate decays exponentially to
+    ``lr_decay`` times its start over the budget. Stops after ``iterations`` or ``budget_seconds`` of
+    training (0: no time limit), whichever comes first. Yields the loss and PSNR every 10 iterations
+    and a preview of training view 0 (at most 64 px) every ``preview_every``. The defaults are the
+    classic course project's "vanilla" NeRF scaled to a CPU (their batch: 4096 rays).
+
+    Args:
+        samples: stratified samples per ray.
+        fine_samples: extra samples per ray from the coarse weights (0: no hierarchical sampling).
+        hidden: width of the MLP.
+        layers: layers of the MLP's trunk (from 4 on, gamma(x) is fed again half way).
+        batch_rays: rays per optimizer step.
+        learning_rate: Adam's initial learning rate.
+        lr_decay: the learning rate at the end of the budget, as a fraction of the initial one.
+        iterations: most optimizer steps.
+        budget_seconds: most seconds of training (0: only the iterations count).
+        preview_every: iterations between two preview renderings.
+        background: the colour behind the scene (white for object datasets).
+    """
+    bundle = as_rays(rays)
+    config = FieldConfig(as_encoding(encoding), hidden, layers, samples, fine_samples)
+    colour = torch.tensor(BACKGROUNDS[background], dtype=torch.float32, device=device)
+    small = scaled_cameras(cameras, min(1.0, PREVIEW_SIDE / max(cameras.width, cameras.height)))
+    origins, directions = cameras_rays(small, device=device)
+    preview = PreviewRays(origins[0], directions[0], (small.height, small.width))
+    options = TrainingOptions(batch_rays, learning_rate, lr_decay, iterations, budget_seconds, preview_every)
+    run = yield from train_field(bundle, config, options, background=colour, preview=preview, rng=rng,
+                                 device=device)
+    tail = max(1, run.iterations // 10)
+    loss_curve, psnr_curve = training_curves(run)
+    final = render_image(run.net.eval(), preview.origins, preview.directions, bundle.bounds, preview.shape,
+                         background=colour)
+    checkpoint = checkpoint_from(run.net, bundle.bounds, np.asarray(BACKGROUNDS[background]))
+    return TrainResult(checkpoint, loss_curve, psnr_curve, Image(final.color, name="training view 0"),
+                       float(run.losses[-tail:].mean()), float(np.minimum(run.psnrs[-tail:], 99.0).mean()),
+                       run.iterations, run.seconds, run.iterations * batch_rays / max(run.seconds, 1e-9))
+
+
+# ----------------------------------------------------------------------------------------------------
+# 4-5. Rendering
+# ----------------------------------------------------------------------------------------------------
+def _render_views(net: NerfMLP, model: NerfCheckpoint, cameras: Cameras, device: str) -> list[ImageRendering]:
+    origins, directions = cameras_rays(cameras, device=device)
+    background = torch.as_tensor(model.background, device=device)
+    return [render_image(net, origins[v], directions[v], model.bounds, (cameras.height, cameras.width),
+                         background=background) for v in range(len(cameras))]
+
+
+@step_result
+class HeldOutResult:
+    """Result of :func:`render_held_out`."""
+
+    test_renders: ImageSet
+    test_depth: np.ndarray
+    test_opacity: np.ndarray
+    render_seconds: float = metric("time to render every held-out view", unit="s")
+
+
+def render_held_out(model: NerfCheckpoint, test_cameras: Cameras, *, device: str = "cpu") -> HeldOutResult:
+    """Render every held-out view (no jitter; fine samples placed deterministically) for evaluation:
+    colour ``(H, W, 3)``, expected depth and opacity ``(H, W)`` per view (see :func:`render_view`)."""
+    checkpoint = as_checkpoint(model)
+    started = time.perf_counter()
+    views = _render_views(network_from(checkpoint, device), checkpoint, test_cameras, device)
+    seconds = time.perf_counter() - started
+    return HeldOutResult(ImageSet(tuple(Image(v.color, name=f"held-out {i}") for i, v in enumerate(views))),
+                         np.stack([v.depth for v in views]), np.stack([v.opacity for v in views]), seconds)
+
+
+@step_result
+class ViewResult:
+    """Result of :func:`render_view`."""
+
+    rendered: Image
+    depth_map: Image
+    opacity_map: Image
+    ray_weights: Curve
+    render_seconds: float = metric("time to render the view", unit="s")
+
+
+def render_view(model: NerfCheckpoint, test_cameras: Cameras, *, view: Annotated[int, Range(0, 1000)] = 0,
+                pixel_u: Annotated[int, Range(-1, 10000)] = -1,
+                pixel_v: Annotated[int, Range(-1, 10000)] = -1, device: str = "cpu") -> ViewResult:
+    """Render held-out camera ``view``: its colour, its depth map (expected termination depth
+    ``sum w_i t_i``, the unabsorbed rest at far; shown from near = black to far = white) and opacity
+    ``sum w_i`` (eq. 3), and the weights ``w_i`` along the ray through pixel ``(pixel_u, pixel_v)`` (-1: the
+    image centre), over the samples of the last pass.
+
+    Args:
+        view: the held-out camera.
+        pixel_u: column of the pixel whose ray's weights are plotted (-1: the centre column).
+        pixel_v: row of that pixel (-1: the centre row).
+    """
+    checkpoint = as_checkpoint(model)
+    if not 0 <= view < len(test_cameras):
+        raise InvalidControl("view", f"must be in [0, {len(test_cameras) - 1}], got {view}")
+    u = test_cameras.width // 2 if pixel_u < 0 else pixel_u
+    v = test_cameras.height // 2 if pixel_v < 0 else pixel_v
+    if u >= test_cameras.width or v >= test_cameras.height:
+        raise InvalidControl("pixel_u" if u >= test_cameras.width else "pixel_v",
+                             f"pixel ({u}, {v}) is outside the {test_cameras.width}x{test_cameras.height} "
+                             "image")
+    one = Cameras(test_cameras.K[view], test_cameras.R[view], test_cameras.t[view], test_cameras.width,
+                  test_cameras.height)
+    net = network_from(checkpoint, device)
+    started = time.perf_counter()
+    image = _render_views(net, checkpoint, one, device)[0]
+    seconds = time.perf_counter() - started
+    origins, directions = cameras_rays(one, device=device)
+    index = v * one.width + u
+    with torch.no_grad():
+        ray = render_rays(net, origins[0, index:index + 1], directions[0, index:index + 1], checkpoint.bounds,
+                          background=torch.as_tensor(checkpoint.background, device=device), jitter=False)
+    t = (ray.t_coarse if ray.t_fine is None else ray.t_fine)[0].cpu().numpy()
+    weights = Curve(t, ray.final.weights[0].cpu().numpy(), title=f"weights along the ray of pixel ({u}, {v})",
+                    xlabel="depth t", ylabel="w_i", labels=("w_i = T_i alpha_i",))
+    near, far = checkpoint.bounds.near, checkpoint.bounds.far
+    depth = np.clip((image.depth - near) / (far - near), 0.0, 1.0)
+    return ViewResult(Image(image.color, name=f"held-out view {view}"), Image(depth, name="depth"),
+                      Image(np.clip(image.opacity, 0.0, 1.0), name="opacity"), weights, seconds)
+
+
+__all__ = ["BACKGROUNDS", "PREVIEW_SIDE", "EncodingResult", "HeldOutResult", "RaysResult", "TrainResult",
+           "ViewResult", "encode_positions", "generate_rays", "render_held_out", "render_view", "train_nerf"]
