@@ -14,12 +14,14 @@ from __future__ import annotations
 
 import asyncio
 import json
-from collections.abc import AsyncIterable
+import logging
+from collections.abc import AsyncIterable, AsyncIterator
 from functools import partial
 from typing import Annotated, Any
 from urllib.parse import urlencode
 
-from fastapi import APIRouter, Body, Path, Query, Request, Response
+import anyio
+from fastapi import APIRouter, Body, Depends, Path, Query, Request, Response
 from fastapi.sse import EventSourceResponse, ServerSentEvent
 from pydantic import BaseModel, ConfigDict, Field
 
@@ -30,6 +32,7 @@ from lab.core.errors import InvalidValue, LabError
 from lab.core.pipeline import DatasetSpec, Pipeline, Session
 
 router = APIRouter(prefix="/api/sessions", tags=["sessions"], responses=error_responses())
+logger = logging.getLogger(__name__)
 
 #: How often an event stream looks for new progress (seconds).
 POLL_SECONDS = 0.05
@@ -286,13 +289,29 @@ def _event(name: str, data: dict[str, Any], event_id: str | None = None) -> Serv
     return ServerSentEvent(event=name, raw_data=json.dumps(jsonable(data), allow_nan=False), id=event_id)
 
 
+async def quiet_hang_up() -> AsyncIterator[None]:
+    """A request-scoped dependency that ends an event stream quietly when its client hangs up.
+
+    FastAPI's ``EventSourceResponse`` forwards the route's events through a keep-alive task and a
+    one-event buffer to the response. When a client stops reading (a full socket) and then hangs up, the
+    response stops with an event in that buffer and the task's next write raises
+    ``anyio.BrokenResourceError`` out of the request's exit stack, which uvicorn logged as ~130 lines of
+    traceback (fastapi discussion #15725). The stream's teardown unwinds through this dependency (entered
+    before the stream), which drops only those stream errors; any other error still propagates.
+    """
+    try:
+        yield
+    except* (anyio.BrokenResourceError, anyio.ClosedResourceError):
+        logger.debug("an event-stream client hung up mid-stream")
+
+
 @router.get("/{session_id}/events", response_class=EventSourceResponse, summary="Stream a run's progress",
             description="Server-sent events of the latest run in the session: `progress` events "
                         "(`{step, iteration, total, loss, message}`) while it runs, then one `done` event "
                         "(the same JSON as the synchronous answer) or `error` event (`{error, field, reason, "
                         "step}`), and the stream ends. A client that connects after the run is over gets its "
                         "retained events again; when nothing has run, one `idle` event (or the outcome of "
-                        "the last recorded run).")
+                        "the last recorded run).", dependencies=[Depends(quiet_hang_up)])
 async def stream_events(request: Request, session: SessionDep) -> AsyncIterable[ServerSentEvent]:
     monitor: RunMonitor = request.app.state.runs.monitor(session)
     after = 0
