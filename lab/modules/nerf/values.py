@@ -7,11 +7,13 @@ arrays, and check what they read with the ``as_*`` functions below.
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Any
+from typing import Any, TypeVar
 
 import numpy as np
 
 from lab.core import InvalidValue
+
+_T = TypeVar("_T")
 
 
 def check_near_far(near: float, far: float, field: str = "bounds") -> tuple[float, float]:
@@ -123,32 +125,30 @@ class NerfCheckpoint:
         object.__setattr__(self, "background", background)
 
 
+def _expect(value: Any, kind: type[_T], field: str, noun: str) -> _T:
+    if not isinstance(value, kind):
+        raise InvalidValue(field, f"expected {noun}, got {type(value).__name__}")
+    return value
+
+
 def as_bounds(value: Any) -> SceneBounds:
     """``value`` if it is :class:`SceneBounds`, else a clear :class:`InvalidValue`."""
-    if not isinstance(value, SceneBounds):
-        raise InvalidValue("bounds", f"expected SceneBounds, got {type(value).__name__}")
-    return value
+    return _expect(value, SceneBounds, "bounds", "SceneBounds")
 
 
 def as_rays(value: Any) -> RayBundle:
     """``value`` if it is a :class:`RayBundle`, else a clear :class:`InvalidValue`."""
-    if not isinstance(value, RayBundle):
-        raise InvalidValue("rays", f"expected a RayBundle, got {type(value).__name__}")
-    return value
+    return _expect(value, RayBundle, "rays", "a RayBundle")
 
 
 def as_encoding(value: Any) -> EncodingConfig:
     """``value`` if it is an :class:`EncodingConfig`, else a clear :class:`InvalidValue`."""
-    if not isinstance(value, EncodingConfig):
-        raise InvalidValue("encoding", f"expected an EncodingConfig, got {type(value).__name__}")
-    return value
+    return _expect(value, EncodingConfig, "encoding", "an EncodingConfig")
 
 
 def as_checkpoint(value: Any) -> NerfCheckpoint:
     """``value`` if it is a :class:`NerfCheckpoint`, else a clear :class:`InvalidValue`."""
-    if not isinstance(value, NerfCheckpoint):
-        raise InvalidValue("model", f"expected a NerfCheckpoint, got {type(value).__name__}")
-    return value
+    return _expect(value, NerfCheckpoint, "model", "a NerfCheckpoint")
 
 
 __all__ = ["EncodingConfig", "FieldConfig", "NerfCheckpoint", "RayBundle", "SceneBounds", "as_bounds",
