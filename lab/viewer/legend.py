@@ -13,12 +13,13 @@ from __future__ import annotations
 import html
 from collections.abc import Callable, Iterable, Mapping
 from dataclasses import dataclass
-from typing import Any
+from typing import Any, Protocol
 
 import numpy as np
 
 from lab.core.values import Cameras, GaussianSplats, Mesh, PointCloud, Segments3D
-from lab.viewer.renderers import (DEFAULT_CAMERA_COLOR, DEFAULT_MESH_COLOR, DEFAULT_POINT_COLOR)
+from lab.viewer.renderers import (DEFAULT_CAMERA_COLOR, DEFAULT_MESH_COLOR, DEFAULT_POINT_COLOR,
+                                  default_cloud_colors)
 
 #: At most this many distinct colours are listed one by one; more are "their own colours".
 MAX_LISTED_COLORS = 6
@@ -84,11 +85,11 @@ def colour_groups(colors: np.ndarray | None, count: int, default: RGB, *, noun: 
     return tuple(swatches), ""
 
 
-def legend_entry(name: str, value: Any) -> LegendEntry | None:
-    """How ``value`` is drawn in the 3D scene, or None for a value that is not drawn there."""
+def legend_entry(name: str, value: Any, *, point_color: RGB = DEFAULT_POINT_COLOR) -> LegendEntry | None:
+    """How ``value`` is drawn in the 3D scene, or None for a value that is not drawn there; a point cloud
+    without colours is drawn in ``point_color`` (its :func:`~lab.viewer.renderers.default_cloud_colors`)."""
     if isinstance(value, PointCloud):
-        swatches, note = colour_groups(value.colors, len(value), DEFAULT_POINT_COLOR, noun="point",
-                                       plural="points")
+        swatches, note = colour_groups(value.colors, len(value), point_color, noun="point", plural="points")
         return LegendEntry(name, "points", len(value), swatches, note)
     if isinstance(value, Cameras):
         swatches, note = colour_groups(value.colors, len(value), DEFAULT_CAMERA_COLOR, noun="camera",
@@ -101,7 +102,7 @@ def legend_entry(name: str, value: Any) -> LegendEntry | None:
         return LegendEntry(name, "segments", len(value.start), swatches, note)
     if isinstance(value, Mesh):
         if value.vertex_colors is None:
-            surface = (Swatch(DEFAULT_MESH_COLOR, "the surface"),)
+            surface = (Swatch(DEFAULT_MESH_COLOR, "the surface (see-through)"),)
             return LegendEntry(name, "triangles", len(value.faces), surface)
         return LegendEntry(name, "triangles", len(value.faces), (), "coloured per vertex (its texture)")
     if isinstance(value, GaussianSplats):
@@ -112,7 +113,30 @@ def legend_entry(name: str, value: Any) -> LegendEntry | None:
 def legend_entries(state: Mapping[str, Any], names: Iterable[str] | None = None) -> list[LegendEntry]:
     """The legend of the values ``names`` of ``state`` (default: all) that are drawn in 3D, in name order."""
     chosen = sorted(state) if names is None else [n for n in names if n in state]
-    return [entry for entry in (legend_entry(n, state[n]) for n in chosen) if entry is not None]
+    colors = default_cloud_colors(state)
+    entries = (legend_entry(n, state[n], point_color=colors.get(n, DEFAULT_POINT_COLOR)) for n in chosen)
+    return [entry for entry in entries if entry is not None]
+
+
+class Explains(Protocol):
+    """What draws in 3D and says what its drawing means: a module's interaction (``Interaction.legend``)."""
+
+    title: str
+
+    def legend(self) -> list[LegendEntry]: ...
+
+
+def interaction_entries(interactions: Iterable[Explains]) -> list[tuple[LegendEntry, str]]:
+    """The legend entries of what ``interactions`` draw, each with the title of the interaction that draws it;
+    an interaction whose ``legend()`` fails is left out (the legend is an explanation, never an error)."""
+    found = []
+    for interaction in interactions:
+        try:
+            entries = list(interaction.legend())
+        except Exception:  # an interaction's bug must not take the legend down
+            continue
+        found += [(entry, interaction.title) for entry in entries]
+    return found
 
 
 def legend_html(entries: Iterable[LegendEntry], producers: Mapping[str, str] | None = None) -> str:
@@ -131,8 +155,7 @@ def legend_html(entries: Iterable[LegendEntry], producers: Mapping[str, str] | N
         rows.append(f"<div style='margin:.2em 0'><b>{html.escape(entry.name)}</b>{by}: {entry.count} "
                     f"{html.escape(entry.kind)}{swatches}{note}</div>")
     if not rows:
-        return ("<div style='opacity:.6;font-size:.85em'>No value of the session drawn in 3D yet (what the "
-                "module's interactions draw is captioned in their own panels).</div>")
+        return "<div style='opacity:.6;font-size:.85em'>Nothing drawn in 3D yet.</div>"
     return "<div style='font-size:.85em;line-height:1.3'>" + "".join(rows) + "</div>"
 
 
@@ -163,14 +186,17 @@ class ScenePanel:
         self.fit_button.on_click(lambda _event: on_fit())
         self._shown = ""
 
-    def show(self, state: Mapping[str, Any], producers: Mapping[str, str] | None = None) -> str:
-        """Update the legend to ``state``'s 3D values; returns the HTML shown."""
-        content = legend_html(legend_entries(state), producers)
+    def show(self, state: Mapping[str, Any], producers: Mapping[str, str] | None = None,
+             interactions: Iterable[Explains] = ()) -> str:
+        """Update the legend to ``state``'s 3D values and what ``interactions`` draw; returns the HTML."""
+        drawn = interaction_entries(interactions)
+        by = {**(producers or {}), **{entry.name: title for entry, title in drawn}}
+        content = legend_html([*legend_entries(state), *(entry for entry, _ in drawn)], by)
         if content != self._shown:
             self.legend.content = content
             self._shown = content
         return content
 
 
-__all__ = ["HOW_TO", "LegendEntry", "ScenePanel", "Swatch", "add_how_to", "colour_groups", "legend_entries",
-           "legend_entry", "legend_html"]
+__all__ = ["HOW_TO", "Explains", "LegendEntry", "ScenePanel", "Swatch", "add_how_to", "colour_groups",
+           "interaction_entries", "legend_entries", "legend_entry", "legend_html"]

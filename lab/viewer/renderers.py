@@ -47,6 +47,13 @@ SEGMENT_COLORS = ((255, 40, 40), (255, 0, 200), (255, 150, 0), (255, 255, 255))
 DEFAULT_CAMERA_COLOR = (40, 90, 200)
 DEFAULT_POINT_COLOR = (60, 60, 60)
 DEFAULT_MESH_COLOR = (200, 200, 210)
+#: How opaque a mesh without colours of its own is drawn: see-through, so the points on and in it show
+#: (diffusion's target shape with the samples drawn on it).
+PLAIN_MESH_OPACITY = 0.3
+#: Colours of the point clouds that bring none, by the rank of their name among such clouds of the state
+#: (:func:`default_cloud_colors`): the first grey, the others distinct from it and from each other.
+CLOUD_COLORS = (DEFAULT_POINT_COLOR, (0, 150, 136), (230, 120, 20), (200, 40, 160), (120, 80, 200),
+                (150, 110, 40))
 BAR_COLOR = (90, 140, 210)
 WORST_BAR_COLOR = (220, 40, 40)
 
@@ -273,6 +280,14 @@ def points_of(value: Any) -> np.ndarray | None:
     return None
 
 
+def default_cloud_colors(state: Mapping[str, Any]) -> dict[str, tuple[int, int, int]]:
+    """The colour each point cloud of ``state`` without colours of its own is drawn in: :data:`CLOUD_COLORS`
+    in the order of their names (so a module's training points, noised points and samples differ, and the
+    legend says which is which)."""
+    names = sorted(n for n, v in state.items() if isinstance(v, PointCloud) and v.colors is None)
+    return {name: CLOUD_COLORS[k % len(CLOUD_COLORS)] for k, name in enumerate(names)}
+
+
 def scene_bounds(values: Iterable[Any]) -> np.ndarray | None:
     """``(2, 3)`` min and max corner of every 3D value (robust to a few far outliers), or None."""
     chunks = [p for p in (points_of(v) for v in values) if p is not None and len(p)]
@@ -397,13 +412,16 @@ class Renderer:
 
 
 class PointCloudRenderer(Renderer):
-    """:class:`PointCloud` -> ``scene.add_point_cloud`` (its colours, else grey)."""
+    """:class:`PointCloud` -> ``scene.add_point_cloud`` (its colours, else :func:`default_cloud_colors`)."""
 
     value_type = PointCloud
 
+    def fingerprint(self, name, value: PointCloud, state, canvas) -> tuple:
+        return (id(value), canvas.extent, default_cloud_colors(state).get(name))
+
     def draw(self, canvas, name, value: PointCloud, state, order) -> Drawn:
-        colors = DEFAULT_POINT_COLOR if value.colors is None else (np.clip(value.colors, 0,
-                                                                           1) * 255).astype(np.uint8)
+        colors = default_cloud_colors(state)[name] if value.colors is None else \
+            (np.clip(value.colors, 0, 1) * 255).astype(np.uint8)
         handle = canvas.scene.add_point_cloud(_node(name), points=value.xyz.astype(np.float32), colors=colors,
                                               point_size=0.006 * canvas.extent, point_shape="circle",
                                               precision="float32")
@@ -521,8 +539,9 @@ class Segments3DRenderer(Renderer):
 
 
 class MeshRenderer(Renderer):
-    """:class:`Mesh` -> ``scene.add_mesh_trimesh`` with vertex colours, else ``add_mesh_simple``; both
-    sides are drawn (a calibration board is seen from behind its printed face's normal)."""
+    """:class:`Mesh` -> ``scene.add_mesh_trimesh`` with vertex colours, else ``add_mesh_simple``, light grey
+    and see-through (:data:`PLAIN_MESH_OPACITY`: a shape with points on it); both sides are drawn (a
+    calibration board is seen from behind its printed face's normal)."""
 
     value_type = Mesh
 
@@ -542,7 +561,8 @@ class MeshRenderer(Renderer):
         else:
             handle = canvas.scene.add_mesh_simple(_node(name), value.vertices.astype(np.float32),
                                                   value.faces.astype(np.uint32), color=DEFAULT_MESH_COLOR,
-                                                  side="double", flat_shading=True)
+                                                  side="double", flat_shading=True,
+                                                  opacity=PLAIN_MESH_OPACITY)
         return Drawn(self.fingerprint(name, value, state, canvas), [handle])
 
 
@@ -755,6 +775,7 @@ class StateDrawer:
         self.errors.clear()
 
 
-__all__ = ["OVERLAY_TYPES", "RENDERERS", "SCENE_ROOT", "Canvas", "Drawn", "Renderer", "StateDrawer",
-           "curve_image", "overlay_view", "overlays_of", "renderer_for", "scene_bounds", "scene_extent",
-           "to_rgb8", "uplot_config", "viewpoint", "wxyz_from_matrix"]
+__all__ = ["CLOUD_COLORS", "OVERLAY_TYPES", "PLAIN_MESH_OPACITY", "RENDERERS", "SCENE_ROOT", "Canvas",
+           "Drawn", "Renderer", "StateDrawer", "curve_image", "default_cloud_colors", "overlay_view",
+           "overlays_of", "renderer_for", "scene_bounds", "scene_extent", "to_rgb8", "uplot_config",
+           "viewpoint", "wxyz_from_matrix"]

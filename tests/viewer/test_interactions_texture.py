@@ -8,7 +8,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from lab.core import Image, InvalidValue
+from lab.core import Image, InvalidValue, Mesh
 from lab.data.textures import procedural
 from lab.modules.texture import PIPELINE, efros_leung, image_quilting
 from lab.viewer.app import ClientView, ModuleCatalog
@@ -87,7 +87,7 @@ def test_mesh_for_wraps_the_texture_with_uvs():
     assert available_textures(state) == ["sample"]
     mesh = mesh_for(state, "sample", "torus", 2, resolution=8)
     assert len(mesh.vertices) == 81 and mesh.visual.uv.shape == (81, 2)
-    assert mesh.visual.material.image.size == (32, 32)  # tiled twice
+    assert mesh.visual.material.baseColorTexture.size == (32, 32)  # tiled twice
     with pytest.raises(Exception, match="run the step"):
         mesh_for(state, "quilting", "plane", 1)
 
@@ -149,10 +149,43 @@ def test_mesh_viewer_wraps_the_newest_texture_on_the_chosen_shape(view):
     assert viewer.shown[0] == "quilting"
     mesh = viewer.show("quilting", "cylinder", 3)
     assert viewer.shown[:3] == ("quilting", "cylinder", 3) and viewer.shape.value == "cylinder"
-    assert mesh.visual.material.image.size == (90, 90)
+    assert mesh.visual.material.baseColorTexture.size == (90, 90) and mesh.visual.material.metallicFactor == 0
     assert viewer.scene_nodes() == ["mesh"]
     viewer.ctx.guarded(lambda: viewer.show("quilting", "sphere"))()
     assert "plane, cylinder or torus" in view.errors[-1]
     view.session.reset("quilt")
     view.refresh(force=True)
     assert viewer.shown[0] == "sample"
+
+
+def test_once_wrap_on_mesh_ran_its_mesh_is_the_only_one_and_the_inputs_show_its_controls(view):
+    viewer = part(view, MeshViewer)
+    view.run_with("quilt", QUILT)
+    assert viewer.scene_nodes() == ["mesh"] and "preview" in viewer.legend()[0].note
+    assert "wrap_on_mesh" in viewer.note.content
+    np.testing.assert_allclose(viewer.bounds(), [[-1.4, -1.4, -0.4], [1.4, 1.4, 0.4]], atol=1e-6)
+    view.run_with("wrap_on_mesh", {"texture": "quilting", "shape": "cylinder", "repeats": 3})
+    assert isinstance(view.session.state.get("textured_mesh"), Mesh)
+    assert viewer.scene_nodes() == [] and viewer.legend() == [] and viewer.bounds() is None  # one mesh only
+    assert (viewer.texture.value, viewer.shape.value, viewer.repeats.value) == ("quilting", "cylinder", 3)
+    assert viewer.texture.disabled and viewer.shape.disabled
+    assert "quilting on a cylinder, repeated 3x" in viewer.info.content
+    viewer.ctx.guarded(lambda: viewer.show("sample", "torus"))()
+    assert "wrap_on_mesh" in view.errors[-1]
+    view.session.reset("wrap_on_mesh")  # back to the preview, its inputs free again
+    view.refresh(force=True)
+    assert viewer.scene_nodes() == ["mesh"] and not viewer.texture.disabled
+
+
+def test_the_scene_rows_do_not_overlap_and_each_drawing_is_in_the_legend(view):
+    view.run_with("synthesize_efros_leung", EL)
+    view.run_with("quilt", QUILT)
+    growth, quilt, mesh = part(view, GrowthExplorer), part(view, QuiltExplorer), part(view, MeshViewer)
+    boxes = [growth.bounds(), quilt.bounds(), mesh.bounds()]
+    for i, a in enumerate(boxes):
+        for b in boxes[i + 1:]:  # disjoint along y (the rows), so no plane cuts through the mesh
+            assert a[1, 1] < b[0, 1] or b[1, 1] < a[0, 1], (a, b)
+    names = [e.name for i in (growth, quilt, mesh) for e in i.legend()]
+    assert names == ["efros_leung plane", "sample plane", "quilting plane", "preview mesh"]
+    assert {"texture_label", "sample_label"} <= set(growth.scene_nodes()) and "label" in quilt.scene_nodes()
+    assert any(s.color == CUT_COLOR for s in quilt.legend()[0].swatches)

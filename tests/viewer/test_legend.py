@@ -45,7 +45,7 @@ def test_only_3d_values_are_in_the_legend_and_its_html_escapes_names():
     page = legend_html(entries, {"lines": "triangulate"})
     assert "<script>" not in page and "b&lt;script&gt;" in page and "(triangulate)" in page
     assert "background:#3c3c3c" in page  # the default point grey, as a square
-    assert "No value of the session drawn in 3D yet" in legend_html([])
+    assert "Nothing drawn in 3D yet" in legend_html([])
 
 
 def test_the_viewer_shows_the_legend_after_a_run_and_fit_view_frames_the_scene(server, store):
@@ -55,7 +55,7 @@ def test_the_viewer_shows_the_legend_after_a_run_and_fit_view_frames_the_scene(s
     view = ClientView(server, store, ModuleCatalog({"epipolar": get_pipeline("epipolar")}), is_client=False,
                       background=False)
     view.start({})
-    assert "No value of the session drawn in 3D yet" in view.scene_panel.legend.content
+    assert "Nothing drawn in 3D yet" in view.scene_panel.legend.content
     assert view.how_to.label == "How to use this"
     view.run_all()
     content = view.scene_panel.legend.content
@@ -63,3 +63,47 @@ def test_the_viewer_shows_the_legend_after_a_run_and_fit_view_frames_the_scene(s
     assert drawn and all(f"<b>{name}</b>" in content for name in drawn)
     assert "cameras" in content and "points" in content
     view.fit_view()  # a server-side view has no client camera: it must not fail
+
+
+def test_clouds_without_colours_get_distinct_colours_the_legend_names():
+    from lab.viewer.renderers import CLOUD_COLORS, RENDERERS, Canvas, default_cloud_colors
+
+    state = {"samples": PointCloud(np.ones((4, 3))), "noised": PointCloud(np.zeros((3, 3))),
+             "coloured": PointCloud(np.zeros((2, 3)), np.ones((2, 3)))}
+    colours = default_cloud_colors(state)
+    assert colours == {"noised": CLOUD_COLORS[0], "samples": CLOUD_COLORS[1]}
+    assert len(set(CLOUD_COLORS)) == len(CLOUD_COLORS)
+    entries = {e.name: e for e in legend_entries(state)}
+    assert entries["samples"].swatches[0].color == CLOUD_COLORS[1]
+    assert entries["noised"].swatches[0].color == CLOUD_COLORS[0]
+
+    class Scene:  # records what the renderer asks viser for
+        def add_point_cloud(self, name, **kwargs):
+            self.colors = kwargs["colors"]
+            return object()
+
+    scene = Scene()
+    RENDERERS[PointCloud].draw(Canvas(scene=scene), "samples", state["samples"], state, 0.0)
+    assert tuple(scene.colors) == CLOUD_COLORS[1]  # drawn in the colour the legend lists
+
+
+def test_the_scene_panel_lists_what_interactions_draw_with_their_title(server):
+    from lab.viewer.legend import LegendEntry, ScenePanel, Swatch
+
+    class Draws:
+        title = "Sampler steps"
+
+        def legend(self):
+            return [LegendEntry("x_t", "points", 7, (Swatch((90, 140, 255), "the samples at the frame"),))]
+
+    class Broken:
+        title = "broken"
+
+        def legend(self):
+            raise RuntimeError("a bug")
+
+    panel = ScenePanel(server.gui, on_fit=lambda: None)
+    content = panel.show({"cloud": PointCloud(np.zeros((2, 3)))}, {"cloud": "dataset"}, [Draws(), Broken()])
+    assert "<b>cloud</b>" in content and "(dataset)" in content
+    assert "<b>x_t</b>" in content and "(Sampler steps)" in content and "background:#5a8cff" in content
+    assert "the samples at the frame" in content and panel.legend.content == content

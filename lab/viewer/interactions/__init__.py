@@ -40,6 +40,7 @@ import numpy as np
 
 from lab.core.errors import LabError, UnknownName
 from lab.core.pipeline import Session
+from lab.viewer.legend import LegendEntry, Swatch
 
 log = logging.getLogger("lab.viewer")
 
@@ -168,9 +169,47 @@ class InteractionContext:
         return call
 
 
+def node_points(handle: Any) -> np.ndarray | None:
+    """``(N, 3)`` world points a viser scene node covers: its points (a point cloud, line segments) or
+    vertices (a mesh), an image's four corners, else its origin (a label, a GLB mesh), moved by the node's
+    own pose; None for a GUI handle. (A node under a parent frame is taken as if the parent were the
+    identity: the interactions draw under plain frames.)"""
+    if not (hasattr(handle, "wxyz") and hasattr(handle, "position")):
+        return None
+    try:
+        local = None
+        for name in ("points", "vertices"):
+            value = getattr(handle, name, None)
+            if isinstance(value, np.ndarray) and value.size:
+                local = value.reshape(-1, 3).astype(np.float64)
+                break
+        if local is None and hasattr(handle, "render_width"):
+            w, h = float(handle.render_width) / 2.0, float(handle.render_height) / 2.0
+            local = np.array([[-w, -h, 0.0], [w, -h, 0.0], [w, h, 0.0], [-w, h, 0.0]])
+        if local is None:
+            local = np.zeros((1, 3))
+        import viser.transforms as vtf
+
+        rotation = vtf.SO3(np.asarray(handle.wxyz, dtype=np.float64)).as_matrix()
+        return local @ rotation.T + np.asarray(handle.position, dtype=np.float64)
+    except Exception:  # a handle already removed, or one of another kind: it covers nothing known
+        return None
+
+
+def handles_bounds(handles: Iterable[Any]) -> np.ndarray | None:
+    """``(2, 3)`` min and max corner of the scene nodes among ``handles`` (:func:`node_points`), or None."""
+    chunks = [p for p in (node_points(h) for h in handles) if p is not None and len(p)]
+    if not chunks:
+        return None
+    points = np.concatenate(chunks)
+    points = points[np.all(np.isfinite(points), axis=1)]
+    return np.stack([points.min(axis=0), points.max(axis=0)]) if len(points) else None
+
+
 class NamedHandles:
     """Scene nodes and GUI handles by name: :meth:`put` replaces (removing the old handle first),
-    :meth:`drop` removes a name and everything under it (``name/...``), :meth:`clear` removes all."""
+    :meth:`drop` removes a name and everything under it (``name/...``), :meth:`clear` removes all;
+    :meth:`bounds` is the box of the scene nodes held."""
 
     def __init__(self) -> None:
         self.handles: dict[str, Any] = {}
@@ -193,6 +232,10 @@ class NamedHandles:
 
     def names(self) -> list[str]:
         return sorted(self.handles)
+
+    def bounds(self) -> np.ndarray | None:
+        """``(2, 3)`` min and max corner of the scene nodes held (:func:`handles_bounds`), or None."""
+        return handles_bounds(list(self.handles.values()))
 
     def clear(self) -> None:
         for name in list(self.handles):
@@ -230,9 +273,19 @@ class Interaction:
         (cheaply: compare the identity of the values used last time)."""
 
     def bounds(self) -> np.ndarray | None:
-        """``(2, 3)`` min and max corner of what this interaction draws in 3D, or None: the tab
-        frames it when the session has no 3D values of its own yet."""
-        return None
+        """``(2, 3)`` min and max corner of what this interaction draws in 3D, or None: the tab frames it with
+        the session's 3D values (:mod:`lab.viewer.camera`). The default: the box of the scene nodes it
+        :meth:`track` s and of those in its ``nodes`` (a :class:`NamedHandles`, when it keeps one); an
+        interaction whose nodes say too little (a GLB mesh is only its origin) says it itself."""
+        nodes = getattr(self, "nodes", None)
+        held = list(nodes.handles.values()) if isinstance(nodes, NamedHandles) else []
+        return handles_bounds([*self.handles, *held])
+
+    def legend(self) -> list[LegendEntry]:
+        """What this interaction draws in 3D and what its colours mean, for the scene legend (none by
+        default): an entry per drawing, e.g. ``LegendEntry("x_t", "points", 2000, (Swatch((90, 140, 255),
+        "the samples at the frame shown"),))``."""
+        return []
 
     def pixel_clicked(self, image_name: str, view: int, pixel: np.ndarray) -> bool:
         """A click on pixel ``(u, v)`` of view ``view`` of image set ``image_name``, on a camera frustum's
@@ -260,5 +313,5 @@ def interactions_for(module: str) -> list[type[Interaction]]:
     return [c for c in classes if isinstance(c, type) and issubclass(c, Interaction)]
 
 
-__all__ = ["EXPLORE_ROOT", "Interaction", "InteractionContext", "NamedHandles", "StateView",
-           "interactions_for"]
+__all__ = ["EXPLORE_ROOT", "Interaction", "InteractionContext", "LegendEntry", "NamedHandles", "StateView",
+           "Swatch", "handles_bounds", "interactions_for", "node_points"]

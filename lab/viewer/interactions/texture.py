@@ -7,8 +7,13 @@
   best (yellow) and the window it copied (green), marked on the sample beside the texture.
 * **Quilting cuts**: for a block (slider, or a click on the quilt), its overlap error surface
   colour-mapped with the minimum-error cut drawn on it, and the block outlined on the quilt.
-* **Texture on a mesh**: a plane, cylinder or torus with the chosen texture as an image map
-  through its UVs (``trimesh.visual.TextureVisuals``), in the 3D scene.
+* **Texture on a mesh**: until step ``wrap_on_mesh`` has run, a preview of a texture on a plane, cylinder
+  or torus as an image map through its UVs (``trimesh.visual.TextureVisuals``); once it has, the scene shows
+  the step's own ``textured_mesh`` (one mesh, where the preview was) and the folder shows the controls it
+  ran with.
+
+The scene is laid out in rows (y down): the mesh at the origin, the Efros–Leung texture and its sample
+above it, the quilt above those, each labelled in the scene and listed in the legend (:meth:`legend`).
 
 The math lives in pure functions (tested directly): :func:`plane_pixel`, :func:`fill_order_image`,
 :func:`growth_frame`, :func:`match_panel`, :func:`window_panel`, :func:`block_at`,
@@ -29,7 +34,7 @@ from lab.core.errors import InvalidValue, MissingInput
 from lab.core.values import Image, Mesh
 from lab.modules.texture import (EfrosLeungTrace, PixelMatches, QuiltLayout, efros_leung_pixel_matches,
                                  parametric_surface, textured_trimesh)
-from lab.viewer.interactions import Interaction, InteractionContext, NamedHandles
+from lab.viewer.interactions import Interaction, InteractionContext, LegendEntry, NamedHandles, Swatch
 from lab.viewer.renderers import to_rgb8
 
 CANDIDATE_COLOR = (255, 210, 0)
@@ -40,6 +45,10 @@ UNKNOWN_COLOR = (70, 70, 90)
 
 #: Side of the planes the texture and the sample are drawn on in the scene (scene units per output side).
 PLANE_SIDE = 2.0
+#: Where the rows of the scene are (y, up is -y): the Efros–Leung texture and sample above the mesh at the
+#: origin (a torus of radius 1.4), the quilt above them.
+GROWTH_ROW_Y = -2.75
+QUILT_ROW_Y = -5.35
 #: Panels are scaled up to at least this many pixels on their longer side.
 PANEL_SIDE = 240
 #: The state values each interaction reads (through ``ctx.values``; each one of the pipeline's views):
@@ -68,6 +77,12 @@ class Plane:
         x = self.position[0] + (col - (self.width - 1) / 2.0) * self.scale
         y = self.position[1] + (row - (self.height - 1) / 2.0) * self.scale
         return np.array([x, y, self.position[2]])
+
+
+def label_position(plane: Plane) -> tuple[float, float, float]:
+    """Where a scene label naming ``plane`` goes: just above its top edge's middle (up is -y)."""
+    x, y, z = plane.point(-0.5, (plane.width - 1) / 2) - np.array([0.0, 0.12, 0.0])
+    return float(x), float(y), float(z)
 
 
 def plane_pixel(plane: Plane, ray_origin: Any, ray_direction: Any) -> tuple[int, int]:
@@ -311,6 +326,18 @@ class GrowthExplorer(Interaction):
         self.nodes.clear()
         super().close()
 
+    def legend(self) -> list[LegendEntry]:
+        if self.output_plane is None:
+            return []
+        marks = [Swatch(UNKNOWN_COLOR, "pixels not grown yet (slider 'grown pixels')")]
+        if self.matches is not None:
+            marks += [Swatch(WINDOW_COLOR, "the clicked pixel's window"),
+                      Swatch(CANDIDATE_COLOR, "the sample's windows within (1 + epsilon) of the best"),
+                      Swatch(CHOSEN_COLOR, "the window it copied")]
+        return [LegendEntry("efros_leung plane", "picture", 1, tuple(marks),
+                            "the Efros–Leung texture as it grew, labelled in the scene; click a pixel"),
+                LegendEntry("sample plane", "picture", 1, (), "the sample it grew from, beside it")]
+
     # --- drawing ---------------------------------------------------------------------------------------
     def _require(self) -> tuple[Image, EfrosLeungTrace, Image]:
         """The texture, its trace and the sample shown; :class:`MissingInput` before there are any."""
@@ -335,11 +362,22 @@ class GrowthExplorer(Interaction):
 
     def _place_planes(self) -> None:
         texture, _, sample = self._require()
-        scale = PLANE_SIDE / max(texture.width, texture.height)
-        self.output_plane = Plane((0.0, 0.0, 0.0), texture.width, texture.height, scale)
+        # one scale for both (a window is as big on each), the larger of them PLANE_SIDE: the row's height
+        scale = PLANE_SIDE / max(texture.width, texture.height, sample.width, sample.height)
         gap = 0.15 * PLANE_SIDE
-        x = (texture.width * scale + sample.width * scale) / 2 + gap
-        self.sample_plane = Plane((x, 0.0, 0.0), sample.width, sample.height, scale)
+        width = texture.width * scale + gap + sample.width * scale
+        left = -width / 2
+        self.output_plane = Plane((left + texture.width * scale / 2, GROWTH_ROW_Y, 0.0), texture.width,
+                                  texture.height, scale)
+        self.sample_plane = Plane((left + width - sample.width * scale / 2, GROWTH_ROW_Y, 0.0), sample.width,
+                                  sample.height, scale)
+        self._label("texture_label", self.output_plane, "efros_leung (click a pixel)")
+        self._label("sample_label", self.sample_plane, "sample")
+
+    def _label(self, name: str, plane: Plane, text: str) -> None:
+        above = label_position(plane)
+        self.nodes.put(name, lambda: self.ctx.scene.add_label(self.ctx.node("efros_leung", name), text,
+                                                              position=above))
 
     def _image_node(self, name: str, plane: Plane, rgb: np.ndarray, *, clickable: bool) -> None:
         handle = self.nodes.handles.get(name)
@@ -476,7 +514,10 @@ class QuiltExplorer(Interaction):
             return
         self.layout, self.quilting = layout, quilting
         scale = PLANE_SIDE / max(quilting.width, quilting.height)
-        self.plane = plane = Plane((0.0, -1.2 * PLANE_SIDE, 0.0), quilting.width, quilting.height, scale)
+        self.plane = plane = Plane((0.0, QUILT_ROW_Y, 0.0), quilting.width, quilting.height, scale)
+        above = label_position(plane)
+        self.nodes.put("label", lambda: self.ctx.scene.add_label(self.ctx.node("quilting", "label"),
+                                                                 "quilting (click a block)", position=above))
         handle = self.nodes.put("quilt", lambda: self.ctx.scene.add_image(
             self.ctx.node("quilting", "image"), to_rgb8(quilting.pixels), quilting.width * scale,
             quilting.height * scale, format="png", position=plane.position, cast_shadow=False,
@@ -490,6 +531,13 @@ class QuiltExplorer(Interaction):
             self.syncing = False
         self.slider.disabled = False
         self.pick_block(min(1, len(layout.positions) - 1))
+
+    def legend(self) -> list[LegendEntry]:
+        if self.plane is None:
+            return []
+        return [LegendEntry("quilting plane", "picture", 1, (Swatch(CUT_COLOR, "the block shown (slider "
+                                                                              "'block'; or click one)"),),
+                            "the quilt, labelled in the scene, above the Efros–Leung row")]
 
     def close(self) -> None:
         self.nodes.clear()
@@ -508,16 +556,30 @@ def available_textures(state: Mapping[str, Any]) -> list[str]:
 
 
 def mesh_for(state: Mapping[str, Any], texture: str, shape: str, repeats: int, *, resolution: int = 64):
-    """A ``trimesh.Trimesh`` of ``shape`` carrying texture ``texture`` of ``state`` through its UVs."""
+    """A ``trimesh.Trimesh`` of ``shape`` carrying texture ``texture`` of ``state`` through its UVs, with a
+    matte material (glTF's default is fully metallic, which three.js draws almost black without an
+    environment map)."""
+    from trimesh.visual.material import PBRMaterial
+
     image = state.get(texture)
     if not isinstance(image, Image):
         raise MissingInput(texture, f"there is no {texture!r} texture yet: run the step that makes it")
     vertices, faces, uv = parametric_surface(shape, resolution)
-    return textured_trimesh(Mesh(vertices, faces), uv, image.pixels, repeats=repeats)
+    mesh = textured_trimesh(Mesh(vertices, faces), uv, image.pixels, repeats=repeats)
+    mesh.visual.material = PBRMaterial(baseColorTexture=mesh.visual.material.image, metallicFactor=0.0,
+                                       roughnessFactor=1.0)
+    return mesh
+
+
+#: The step whose result the mesh viewer defers to, and its controls the viewer mirrors.
+WRAP_STEP = "wrap_on_mesh"
+WRAP_CONTROLS = ("texture", "shape", "repeats")
 
 
 class MeshViewer(Interaction):
-    """A synthesized texture wrapped on a plane, cylinder or torus (image map through UVs)."""
+    """A texture wrapped on a plane, cylinder or torus (image map through UVs): a preview until step
+    ``wrap_on_mesh`` has run; then the scene shows the step's ``textured_mesh`` alone and the inputs show
+    the controls it ran with (one picture, never two meshes)."""
 
     title = "Texture on a mesh"
 
@@ -527,38 +589,72 @@ class MeshViewer(Interaction):
         self.nodes = NamedHandles()
         self.state: Mapping[str, Any] = {}
         self.shown: tuple[str, str, int, int] | None = None
+        self.triangles = 0
+        self.box: np.ndarray | None = None
         self.texture = self.track(gui.add_dropdown("texture", TEXTURES, initial_value="sample"))
         self.shape = self.track(gui.add_dropdown("shape", ("torus", "cylinder", "plane"),
                                                  initial_value="torus"))
         self.repeats = self.track(gui.add_slider("repeats", min=1, max=6, step=1, initial_value=2))
         self.info = self.track(gui.add_markdown(""))
+        self.note = self.track(gui.add_markdown(""))
         self.syncing = False
         for handle in (self.texture, self.shape, self.repeats):
             handle.on_update(lambda _: None if self.syncing else ctx.guarded(self._from_inputs)())
 
+    def wrapped(self) -> dict[str, Any] | None:
+        """The controls step ``wrap_on_mesh`` made the session's ``textured_mesh`` with, or None while it has
+        not run (or was reset)."""
+        return self.ctx.session.ran_with.get(WRAP_STEP)
+
     def show(self, texture: str, shape: str, repeats: int = 2) -> Any:
-        """Draw ``texture`` on ``shape`` in the scene; returns the trimesh drawn."""
+        """Draw ``texture`` on ``shape`` in the scene (a preview, where the step's mesh goes); returns the
+        trimesh drawn."""
         if shape not in ("plane", "cylinder", "torus"):
             raise InvalidValue("shape", f"must be plane, cylinder or torus, got {shape!r}")
+        if self.wrapped() is not None:
+            raise InvalidValue(WRAP_STEP, "the scene shows step wrap_on_mesh's textured_mesh: change the "
+                                          "step's texture, shape or repeats and run it (or reset it to "
+                                          "preview)")
         mesh = mesh_for(self.state, texture, shape, int(repeats))
         image = self.state[texture]
-        self.nodes.put("mesh", lambda: self.ctx.scene.add_mesh_trimesh(
-            self.ctx.node("mesh", "surface"), mesh, position=(0.0, 2.6 * PLANE_SIDE / 2 + 1.5, 0.0)))
+        self.nodes.put("mesh", lambda: self.ctx.scene.add_mesh_trimesh(self.ctx.node("mesh", "surface"),
+                                                                       mesh))
         self.shown = (texture, shape, int(repeats), id(image))
+        self.triangles = len(mesh.faces)
+        self.box = np.asarray(mesh.bounds, dtype=np.float64)
         self.info.content = (f"{texture} ({image.width} x {image.height}) on a {shape}, repeated "
                              f"{int(repeats)}x.")
+        self.note.content = ("A preview drawn by this panel (the texture as an image map). Run step "
+                             "**wrap_on_mesh** to make the session's `textured_mesh`: it then takes the "
+                             "preview's place.")
+        self._set_inputs(texture, shape, int(repeats), disabled=False)
+        return mesh
+
+    def _set_inputs(self, texture: str, shape: str, repeats: int, *, disabled: bool) -> None:
         self.syncing = True
         try:
             self.texture.value, self.shape.value, self.repeats.value = texture, shape, int(repeats)
+            for handle in (self.texture, self.shape, self.repeats):
+                handle.disabled = disabled
         finally:
             self.syncing = False
-        return mesh
 
     def scene_nodes(self) -> list[str]:
         return sorted(self.nodes.handles)
 
     def update(self, state: Mapping[str, Any]) -> None:
         self.state = state = self.ctx.values(TEXTURES, state)
+        wrapped = self.wrapped()
+        if wrapped is not None:  # the step's mesh is the picture: mirror its controls, draw nothing
+            self.nodes.clear()
+            self.shown = None
+            texture, shape, repeats = (str(wrapped[k]) for k in WRAP_CONTROLS)
+            self.repeats.max = max(int(self.repeats.max), int(repeats))
+            self._set_inputs(texture, shape, int(repeats), disabled=True)
+            self.info.content = (f"The scene shows `textured_mesh` of step wrap_on_mesh: {texture} on a "
+                                 f"{shape}, repeated {int(repeats)}x (vertex colours).")
+            self.note.content = "Change the texture, shape or repeats in the step's own controls and run it."
+            return
         available = available_textures(state)
         if not available:
             self.nodes.clear()
@@ -574,6 +670,18 @@ class MeshViewer(Interaction):
         if key != self.shown:
             self.show(wanted, str(self.shape.value), int(self.repeats.value))
 
+    def bounds(self) -> np.ndarray | None:
+        """The preview's box (a GLB node tells only its origin), None when none is drawn."""
+        return self.box if "mesh" in self.nodes.handles else None
+
+    def legend(self) -> list[LegendEntry]:
+        if self.shown is None:
+            return []
+        texture, shape, repeats, _ = self.shown
+        return [LegendEntry("preview mesh", "triangles", self.triangles, (),
+                            f"{texture} on a {shape} ({repeats}x), image-mapped: a preview until "
+                            "wrap_on_mesh runs")]
+
     def _from_inputs(self) -> None:
         if self.state:
             self.show(str(self.texture.value), str(self.shape.value), int(self.repeats.value))
@@ -585,6 +693,7 @@ class MeshViewer(Interaction):
 
 INTERACTIONS = [GrowthExplorer, QuiltExplorer, MeshViewer]
 
-__all__ = ["GROWTH_READS", "INTERACTIONS", "QUILT_READS", "TEXTURES", "GrowthExplorer", "MeshViewer", "Plane",
-           "QuiltExplorer", "available_textures", "block_at", "cut_mask", "fill_order_image", "growth_frame",
-           "match_panel", "mesh_for", "overlap_panel", "plane_pixel", "window_panel"]
+__all__ = ["GROWTH_READS", "GROWTH_ROW_Y", "INTERACTIONS", "QUILT_READS", "QUILT_ROW_Y", "TEXTURES",
+           "WRAP_STEP", "GrowthExplorer", "MeshViewer", "Plane", "QuiltExplorer", "available_textures",
+           "block_at", "cut_mask", "fill_order_image", "growth_frame", "label_position", "match_panel",
+           "mesh_for", "overlap_panel", "plane_pixel", "window_panel"]
