@@ -4,12 +4,22 @@ A :class:`ProgressPanel` listens to a session (``session.listeners``): every
 :class:`~lab.core.step.Progress` snapshot of a long step (run by this tab, or by a REST call on the
 same session) updates that step's progress widgets (text, bar, live loss plot, Cancel: a
 :class:`~lab.viewer.gui.StepProgressGui` below the step's Run buttons, where the user pressed Run) and
-the browser tab's title (``▶ refine 7/100 — Vision Lab``) at most every :data:`PROGRESS_SECONDS`; a
-snapshot's preview values (``Progress.values``) are handed to ``preview`` at most every
-:data:`PREVIEW_SECONDS`. When the step ends, :meth:`ProgressPanel.finish` shows how (it may stop
-early, converged) and the title is plain again. A finished run's progress stays in its step's folder
-only while the step's status is the one the run left: once the step is reset (or re-labelled stale,
-seen at the next refresh) it is hidden, so it never contradicts the step's label.
+the browser tab's title (``▶ refine 7/100 — Vision Lab``) at most every :data:`PROGRESS_SECONDS`.
+
+A snapshot's preview values (``Progress.values``: SfM's cameras and points as they register) are drawn by
+``preview`` in the step's thread, so drawing is what watching costs (issue 16: an SfM run took 7 times as
+long with a tab open). They are throttled to what a person can follow: the first snapshot's at once,
+then at most one every :data:`PREVIEW_SECONDS`, and never more than :data:`PREVIEW_SHARE` of the step
+thread's CPU time (a draw that took ``d`` CPU seconds waits until the thread has used ``d / PREVIEW_SHARE``
+more; on a loaded machine a wall-time share would let a slow draw take most of the step's CPU). Values
+that arrive meanwhile are kept, the latest replacing older ones, and drawn at the first snapshot past the
+wait; when the step ends the pending ones are dropped: the step's result is drawn by the tab's refresh.
+Unchanged values are not sent again (the renderers' fingerprints, :class:`lab.viewer.renderers.StateDrawer`).
+
+When the step ends, :meth:`ProgressPanel.finish` shows how (it may stop early, converged) and the title
+is plain again. A finished run's progress stays in its step's folder only while the step's status is the
+one the run left: once the step is reset (or re-labelled stale, seen at the next refresh) it is hidden,
+so it never contradicts the step's label.
 """
 
 from __future__ import annotations
@@ -28,9 +38,11 @@ from lab.viewer.gui import PLAIN_TITLE, StepProgressGui, TabGui
 from lab.viewer.plots import chart_axes
 from lab.viewer.text import format_number
 
-#: Minimum time between two GUI updates from progress snapshots (and between two preview draws).
+#: Minimum time between two GUI updates from progress snapshots, and between two preview draws.
 PROGRESS_SECONDS = 0.1
 PREVIEW_SECONDS = 0.5
+#: Most of a step's time its preview draws may take (see the module docstring).
+PREVIEW_SHARE = 0.2
 #: Minimum time between two tab titles of a running step (each is a line of JavaScript viser never culls).
 TITLE_SECONDS = 1.0
 
@@ -46,7 +58,12 @@ class ProgressState:
     x: list[float] = field(default_factory=list)
     y: list[float] = field(default_factory=list)
     shown: float = 0.0
-    preview: float = 0.0
+    #: When the next preview may be drawn (the panel's clock, and its step thread's CPU clock), and the values
+    #: waiting for it.
+    preview_at: float = 0.0
+    preview_cpu_at: float = 0.0
+    pending: Mapping[str, Any] | None = None
+    previews: int = 0
     finished: bool = False
     fraction: float = 0.0
     animated: bool = False
@@ -72,13 +89,18 @@ def running_title(step: str, iteration: int, total: int | None) -> str:
 
 class ProgressPanel:
     """The progress of one tab's long steps (see the module docstring). ``lock`` is the tab's;
-    ``preview(values)`` draws a snapshot's preview values over the session's state."""
+    ``preview(values)`` draws a snapshot's preview values over the session's state; ``clock`` and
+    ``cpu_clock`` are ``time.monotonic`` and ``time.thread_time`` (tests give others)."""
 
     def __init__(self, gui: TabGui, lock: threading.RLock,
-                 preview: Callable[[Mapping[str, Any]], None]) -> None:
+                 preview: Callable[[Mapping[str, Any]], None], *,
+                 clock: Callable[[], float] = time.monotonic,
+                 cpu_clock: Callable[[], float] = time.thread_time) -> None:
         self.gui = gui
         self.lock = lock
         self.preview = preview
+        self.clock = clock
+        self.cpu_clock = cpu_clock
         self.states: dict[str, ProgressState] = {}
         self.current: str | None = None  # the step that reported last
         self.closed = False
@@ -103,7 +125,7 @@ class ProgressPanel:
         if self.closed:
             return
         state = self.states.get(step)
-        now = time.monotonic()
+        now = self.clock()
         new_run = state is None or state.finished or progress.iteration <= state.iteration
         if state is None or new_run:
             state = ProgressState(step=step)
@@ -117,6 +139,8 @@ class ProgressPanel:
         state.fraction = min(1.0, progress.iteration / total) if total else 0.0
         state.animated = not total
         state.message = progress_message(step, progress)
+        if progress.values:
+            state.pending = {**(state.pending or {}), **progress.values}
         last = total is not None and progress.iteration >= total
         if not new_run and not last and now - state.shown < PROGRESS_SECONDS:
             return  # shown at the next snapshot, or when the step ends
@@ -126,9 +150,21 @@ class ProgressPanel:
             if new_run or last or now - state.titled >= TITLE_SECONDS:
                 state.titled = now
                 self._title(running_title(step, progress.iteration, total))
-            if progress.values and now - state.preview >= PREVIEW_SECONDS:
-                state.preview = now
-                self.preview(progress.values)
+            due = now >= state.preview_at and self.cpu_clock() >= state.preview_cpu_at
+            if state.pending is not None and due:
+                self._draw_preview(state)
+
+    def _draw_preview(self, state: ProgressState) -> None:
+        """Draw the pending preview values; the next may come :data:`PREVIEW_SECONDS` later, and once the
+        step's thread has used this draw's CPU time over :data:`PREVIEW_SHARE` more."""
+        values, state.pending = state.pending or {}, None
+        started, cpu = self.clock(), self.cpu_clock()
+        try:
+            self.preview(values)
+        finally:
+            state.previews += 1
+            state.preview_at = started + PREVIEW_SECONDS
+            state.preview_cpu_at = cpu + (self.cpu_clock() - cpu) / PREVIEW_SHARE
 
     def _title(self, title: str) -> None:
         if self.gui.title is not None:
@@ -172,7 +208,7 @@ class ProgressPanel:
             record = next((r for r in reversed(history) if r.step == state.step), None)
             if record is None:
                 continue
-            state.finished, state.record = True, record
+            state.finished, state.record, state.pending = True, record, None  # the refresh draws the result
             if record.status == "ok":
                 state.fraction = 1.0
             state.message = f"{state.message} — **{record.status}**"
@@ -194,5 +230,5 @@ class ProgressPanel:
             self.states.pop(step, None)
 
 
-__all__ = ["PREVIEW_SECONDS", "PROGRESS_SECONDS", "TITLE_SECONDS", "ProgressPanel", "ProgressState",
-           "progress_message", "running_title"]
+__all__ = ["PREVIEW_SECONDS", "PREVIEW_SHARE", "PROGRESS_SECONDS", "TITLE_SECONDS", "ProgressPanel",
+           "ProgressState", "progress_message", "running_title"]

@@ -14,7 +14,8 @@ by a loop of the viewer's own:
   their outputs.
 
 A :class:`Runner` executes a plan with :meth:`Session.run_plan` in the tab's one worker thread:
-each step's label says "running" while it runs, the tab is redrawn after each step, Cancel stops a
+each step's label says "running" while it runs, the tab is redrawn after each step (:attr:`Runner.planned`
+says which steps of the plan are still to finish), Cancel stops a
 long step at its next snapshot and a plan before its next step. A step whose module's fast kernels are not
 compiled in this process yet (:func:`lab.core.kernels.needs_compiling`: ``vision-lab serve`` compiles them
 at start-up, so this is rare) is labelled :data:`COMPILING` instead, so a first run's pause to compile is
@@ -66,6 +67,8 @@ class Runner:
         self.refresh = refresh
         self.mark = mark
         self.worker: threading.Thread | None = None
+        #: The steps of the running plan that have not finished (the running one first); () when none runs.
+        self.planned: tuple[str, ...] = ()
         self._stop = threading.Event()
 
     def busy(self) -> bool:
@@ -98,9 +101,11 @@ class Runner:
             self.refresh()
             return
         self.mark(steps[0], running_label(session, steps[0]))
+        self.planned = tuple(steps)
 
         def after(record: RunRecord) -> None:
             index = steps.index(record.step)
+            self.planned = tuple(steps[index + 1:])
             if index + 1 < len(steps):
                 self.refresh()
                 self.mark(steps[index + 1], running_label(session, steps[index + 1]))
@@ -136,6 +141,7 @@ class Runner:
             log.error("step failed in the viewer:\n%s", traceback.format_exc())
             self.show_error(exc)
         finally:
+            self.planned = ()  # the last refresh labels every step as the session now is
             try:
                 self.refresh()
             except Exception as exc:

@@ -20,13 +20,13 @@ import contextlib
 import logging
 import threading
 import traceback
-from collections.abc import Callable, Mapping
+from collections.abc import Callable, Mapping, Sequence, Set
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
 from lab.core.errors import LabError, UnknownName
-from lab.core.pipeline import DatasetSpec, Plan, RunRecord, Session, StepParams
+from lab.core.pipeline import DatasetSpec, Plan, RunRecord, Session, StepParams, StepStatus
 from lab.core.store import SessionStore
 from lab.viewer.camera import CameraFramer, framing
 from lab.viewer.legend import ScenePanel, add_how_to
@@ -413,13 +413,16 @@ class ClientView:
 
     def refresh_status(self) -> dict[str, str]:
         """Label every step with its status now: a done step whose controls (or an upstream step's)
-        differ from those its outputs came from is marked stale, with a note saying what changed."""
+        differ from those its outputs came from is marked stale, with a note saying what changed. While
+        a plan runs, a step outside it keeps its label (:func:`status_during_plan`)."""
         with self.lock:
             session = self.session
             if session is None or self.closed:
                 return {}
             shown = self.shown_params()
-            status: dict[str, str] = dict(session.step_status(shown))
+            planned = self.runner.planned
+            status = status_during_plan(session, session.step_status(shown), planned,
+                                        stale=session.stale(shown) if planned else set())
             for index, spec in enumerate(session.pipeline.steps):
                 row = self.rows.get(spec.name)
                 if row is None:
@@ -652,7 +655,33 @@ class ClientView:
         self.tab.error_box.content = ""
 
 
-__all__ = ["ClientView", "ParamsSource"]
+__all__ = ["ClientView", "ParamsSource", "status_during_plan"]
+
+
+def status_during_plan(session: Session, status: Mapping[str, StepStatus], planned: Sequence[str], *,
+                       stale: Set[str] = frozenset()) -> dict[str, str]:
+    """The steps' labels while the steps ``planned`` are still to finish (:attr:`Runner.planned`).
+
+    Steps share output names (SfM's ``cameras``, ``points3d``, ``observations`` are written by four
+    steps, each stage's own), so while a plan runs a done step outside it can miss a value a step of the
+    plan has dropped and will write again: ``filter_points`` drops bundle adjustment's outputs, its
+    ``cameras`` with them, and until ``bundle_adjust_all`` has run ``reconstruct_incrementally`` read
+    "ready" (issue 16: SfM's labels flickered between done and ready while a later step ran). A step that
+    ran (``Session.ran_with``), is not in ``planned`` and misses only names ``planned`` will write keeps
+    the label it had: done, or stale when it is in ``stale`` (``Session.stale`` of the controls shown).
+    """
+    labels: dict[str, str] = dict(status)
+    if not planned:
+        return labels
+    pipeline, state = session.pipeline, dict(session.state)
+    coming = {name for step in planned for name in pipeline.step(step).writes}
+    for spec in pipeline.steps:
+        if status[spec.name] not in ("ready", "blocked") or spec.name in planned or \
+                spec.name not in session.ran_with:
+            continue
+        if all(name in state or name in coming for name in spec.writes):
+            labels[spec.name] = "stale" if spec.name in stale else "done"
+    return labels
 
 
 def _producers(session: Session, state: Mapping[str, Any]) -> dict[str, str]:
