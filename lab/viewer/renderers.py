@@ -52,8 +52,8 @@ DEFAULT_MESH_COLOR = (200, 200, 210)
 PLAIN_MESH_OPACITY = 0.3
 #: Colours of the point clouds that bring none, by the rank of their name among such clouds of the state
 #: (:func:`default_cloud_colors`): the first grey, the others distinct from it and from each other.
-CLOUD_COLORS = (DEFAULT_POINT_COLOR, (0, 150, 136), (230, 120, 20), (200, 40, 160), (120, 80, 200),
-                (150, 110, 40))
+CLOUD_COLORS = (DEFAULT_POINT_COLOR, (0, 150, 136), (200, 40, 160), (120, 80, 200), (150, 110, 40),
+                (200, 170, 0))
 BAR_COLOR = (90, 140, 210)
 WORST_BAR_COLOR = (220, 40, 40)
 

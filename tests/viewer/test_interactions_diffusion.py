@@ -150,3 +150,36 @@ def test_digits_show_image_grids(server, store):
     assert noisy.shape == (19, 91)
     part.show_frame(0)
     assert not np.allclose(part.grids[0], noisy)  # the first frame is noise
+
+
+def test_the_samples_read_apart_from_the_training_points_and_the_legend_says_which_is_which(server, store):
+    from lab.viewer.legend import legend_entries
+    from lab.viewer.renderers import DEFAULT_POINT_COLOR, PLAIN_MESH_OPACITY, default_cloud_colors
+    from lab.viewer.interactions.diffusion import CLEAN_COLOR, NOISY_COLOR, TRAJECTORY_COLOR
+
+    view = ClientView(server, store, ModuleCatalog([PIPELINE]), is_client=False, background=False)
+    view.open_session(store.create(PIPELINE, "shape_3d", {"count": 300, "held_out": 300}))
+    view.run_with("noise_schedule", {"timesteps": 100})
+    view.run_with("train_denoiser", TINY)
+    view.run_with("sample", {"sampler": "ddim", "steps": 6, "count": 100})
+    part = scrubber(view)
+    part.show_frame(3)
+    state = dict(view.session.state)
+    # every cloud of the session and of the scrubber in a colour of its own
+    session_colours = default_cloud_colors(state)
+    assert "samples" in session_colours and "points" in session_colours
+    colours = [*session_colours.values(), NOISY_COLOR, CLEAN_COLOR, TRAJECTORY_COLOR]
+    assert len(set(colours)) == len(colours)
+    assert session_colours["samples"] != DEFAULT_POINT_COLOR
+    # the target shape is see-through (the samples on and in it show), and says so
+    mesh = next(e for e in legend_entries(state) if e.name == "mesh")
+    assert "see-through" in mesh.swatches[0].marks and 0 < PLAIN_MESH_OPACITY < 0.5
+    # the scrubber's drawings are in the legend with the frame shown
+    legend = {e.name: e for e in part.legend()}
+    assert set(legend) == {"x_t", "x0_hat", "trajectories"}
+    [swatch] = legend["x_t"].swatches
+    assert swatch.color == NOISY_COLOR and "frame 3 of 6" in swatch.marks
+    assert legend["x_t"].count == 100 and legend["trajectories"].count == 16 * 3
+    view.session.reset("sample")
+    view.refresh(force=True)
+    assert part.legend() == []

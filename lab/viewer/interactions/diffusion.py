@@ -25,12 +25,16 @@ import numpy as np
 
 from lab.core.errors import InvalidValue
 from lab.modules.diffusion import DIGIT_SHAPE, SamplingTrace, digit_grid
-from lab.viewer.interactions import Interaction, InteractionContext, NamedHandles
+from lab.viewer.interactions import Interaction, InteractionContext, LegendEntry, NamedHandles, Swatch
 
-#: Colours (RGB, 0-255).
-NOISY_COLOR = (90, 140, 255)
+#: Colours (RGB, 0-255): x_t blue, the predicted x0 orange, the paths green; none of them the greys and
+#: :data:`lab.viewer.renderers.CLOUD_COLORS` the session's own clouds (training points, samples) are drawn in.
+NOISY_COLOR = (40, 110, 255)
 CLEAN_COLOR = (255, 140, 40)
-TRAJECTORY_COLOR = (120, 200, 120)
+TRAJECTORY_COLOR = (60, 190, 60)
+#: The scrubber's points are this share of the scene's extent: larger than the session's clouds' (0.006), so
+#: x_t stays visible over the samples it ends as.
+POINT_SHARE = 0.012
 #: How many samples' trajectories are drawn.
 TRAJECTORIES = 16
 #: Where x0_hat is drawn: shifted along +x by this many widths of the data.
@@ -207,9 +211,24 @@ class SamplerScrubber(Interaction):
         both = np.concatenate(self.clouds)
         return np.stack([both.min(axis=0), both.max(axis=0)])
 
+    def legend(self) -> list[LegendEntry]:
+        if self.clouds is None or self.trace is None:
+            return []
+        frame = f"frame {self.index} of {self.trace.frames - 1}"
+        entries = [LegendEntry("x_t", "points", len(self.clouds[0]),
+                               (Swatch(NOISY_COLOR, f"the samples at {frame} (slider 'frame')"),),
+                               "noise at frame 0; at the last frame the generated samples"),
+                   LegendEntry("x0_hat", "points", len(self.clouds[1]),
+                               (Swatch(CLEAN_COLOR, "the clean samples the model predicts from x_t"),),
+                               "drawn beside x_t (shifted along +x)")]
+        if len(self.segments):
+            paths = Swatch(TRAJECTORY_COLOR, f"the paths of {TRAJECTORIES} samples so far")
+            entries.append(LegendEntry("trajectories", "segments", len(self.segments), (paths,)))
+        return entries
+
     def _draw_points(self) -> None:
         scene, node = self.ctx.scene, self.ctx.node
-        size = 0.01 * max(self.ctx.extent(), 1e-3)
+        size = POINT_SHARE * max(self.ctx.extent(), 1e-3)
         assert self.clouds is not None
         noisy, clean = (cloud.astype(np.float32) for cloud in self.clouds)
         self.nodes.put("x_t", lambda: scene.add_point_cloud(node("x_t"), noisy, NOISY_COLOR, point_size=size))
