@@ -147,10 +147,12 @@ def test_image_placement_covers_each_pixel_ray(loaded):
 
 
 def test_candidate_layout():
-    offsets = candidate_layout(4, 2.0)
+    offsets = candidate_layout(4, 2.0)  # two by two, centred in x, rows below the rig (+y is down)
     assert offsets.shape == (4, 3)
-    assert np.allclose(offsets[:, 0], [2.0, 4.0, 6.0, 8.0]) and not offsets[:, 1:].any()
-    assert np.allclose(candidate_layout(3, 1.0, axis=1, first=0.0)[:, 1], [0.0, 1.0, 2.0])
+    assert np.allclose(offsets[:, 0], [-1.0, 1.0, -1.0, 1.0])
+    assert np.allclose(offsets[:, 1], [2.0, 2.0, 4.0, 4.0]) and not offsets[:, 2].any()
+    row = candidate_layout(3, 1.0, columns=3, first=0.0)
+    assert np.allclose(row[:, 0], [-1.0, 0.0, 1.0]) and not row[:, 1].any()
     with pytest.raises(InvalidValue, match="spacing"):
         candidate_layout(4, 0.0)
 
@@ -176,7 +178,8 @@ def test_exactly_one_candidate_passes_cheirality_and_it_is_the_recovered_pose(lo
     assert np.allclose(points[analysis.chosen] * np.linalg.norm(truth["t"]),
                        truth["points3d"][:10], rtol=1e-6)
     assert in_front[analysis.chosen].all() and not in_front[(analysis.chosen + 2) % 4].any()  # -t: all behind
-    assert np.allclose(analysis.offsets[:, 1:], 0.0) and np.all(np.diff(analysis.offsets[:, 0]) > 0)
+    spacing = 1.6 * analysis.far * analysis.scale  # two by two below the rig, apart from each other
+    np.testing.assert_allclose(analysis.offsets, candidate_layout(4, spacing, first=0.9))
     with pytest.raises(InvalidValue, match="candidates"):
         analyse_candidates(candidates[:, :, :3], truth["K1"], truth["K2"], x1, x2)
     with pytest.raises(MissingInput):
@@ -374,10 +377,12 @@ def test_four_candidates_side_by_side_with_the_chosen_one_highlighted(view):
     assert tuple(np.asarray(other_rig.colors).reshape(-1, 3)[0]) == (150, 150, 150)
     label = candidates.nodes.handles[f"candidates/{a.chosen}/label"]
     assert f"{int(a.counts[a.chosen])}/{a.total} in front" in label.text and "passes" in label.text
-    # the copies sit side by side along x, beside the rig at the origin
+    # the copies sit two by two below the scene (+y is down), apart from each other
     rigs = [candidates.nodes.handles[f"candidates/{i}/rig"].points.reshape(-1, 3) for i in range(4)]
-    centres_x = [float(r[:, 0].mean()) for r in rigs]
-    assert np.all(np.diff(centres_x) > 0) and centres_x[0] > 0
+    centres = np.array([r.mean(axis=0) for r in rigs])
+    assert centres[0, 0] < centres[1, 0] and centres[2, 0] < centres[3, 0]
+    assert centres[2, 1] > centres[0, 1] > 0
+    assert [e.name for e in candidates.legend()] == ["pose candidates"]
     candidates.show_box.value = False
     assert candidates.scene_nodes() == []
     candidates.show_box.value = True

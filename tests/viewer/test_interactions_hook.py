@@ -114,12 +114,22 @@ def test_the_tab_frames_what_interactions_draw_when_the_state_has_no_3d_values(s
     monkeypatch.setattr(viewer_view, "interactions_for", lambda name: [Recorder, Boxed])
     view = ClientView(server, store, ModuleCatalog({"toy": TOY}), is_client=False, background=False)
     view.start({})
-    _eye, look_at = view.framing(dict(view.session.state))
-    np.testing.assert_allclose(look_at, [1.0, 1.0, 1.0])
+    from lab.viewer.camera import CameraPose, Viewport, box_corners, project
+
+    def seen(points, framed):  # inside the default canvas (viser's fov, the canvas between the panels)
+        eye, look_at = framed
+        pose = CameraPose(np.asarray(eye), np.asarray(look_at), np.array([0.0, -1.0, 0.0]))
+        xy = project(points, pose, Viewport())
+        return bool(np.all((xy > 0.0) & (xy < 1.0)))
+
+    box = box_corners(np.array([[0.0, 0.0, 0.0], [2.0, 2.0, 2.0]]))
+    framed = view.framing(dict(view.session.state))
+    assert framed is not None and seen(box, framed)
+    np.testing.assert_allclose(framed[1], [1.0, 1.0, 1.0], atol=0.5)  # it orbits about the box's middle
     view.run("lift", until=True)
     cloud = view.session.state["cloud"]
-    _, look_at = view.framing(dict(view.session.state))
-    np.testing.assert_allclose(look_at, (cloud.xyz.min(0) + cloud.xyz.max(0)) / 2)
+    framed = view.framing(dict(view.session.state))
+    assert seen(cloud.xyz, framed) and seen(box, framed)  # the state's values and what interactions draw
 
 
 def test_restart_runs_to_a_step_with_params_and_carries_to_the_new_interactions(view):

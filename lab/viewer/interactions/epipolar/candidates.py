@@ -1,7 +1,7 @@
 """The four pose candidates of E side by side, the one that passes the cheirality test highlighted.
 
-Four small copies of the two-camera rig, one per ``[R | t]`` of the essential matrix, laid out along
-the x axis beside the scene, each with the points it triangulates (blue in front of both cameras,
+Four small copies of the two-camera rig, one per ``[R | t]`` of the essential matrix, laid out two by two
+below the scene (as H&Z's figure 9.12), each with the points it triangulates (blue in front of both cameras,
 red behind one), and a table of how many points each puts in front of both cameras: the one with
 the most is what ``recover_pose`` keeps. Reference: Hartley & Zisserman (2nd ed.), sections
 9.6.2-9.6.3 (the four solutions of E and the cheirality test).
@@ -22,7 +22,7 @@ from lab.geometry.camera_views import camera_centre
 from lab.geometry.triangulation import point_depths, projection_matrix, triangulate_dlt
 from lab.modules.epipolar import cheirality_counts, essential_candidates
 from lab.viewer.drawing import frustum_segments
-from lab.viewer.interactions import Interaction, InteractionContext, NamedHandles
+from lab.viewer.interactions import Interaction, InteractionContext, LegendEntry, NamedHandles, Swatch
 from lab.viewer.interactions.epipolar.geometry import (GEOMETRY_READS, matrix_or_none, observed_pairs,
                                                        scene_depths, two_view_geometry)
 
@@ -37,17 +37,21 @@ MAX_CANDIDATE_POINTS = 300
 CANDIDATE_READS = (*GEOMETRY_READS, "candidates", "E")
 
 
-def candidate_layout(count: int, spacing: float, *, axis: int = 0, first: float = 1.0) -> np.ndarray:
-    """Offsets ``(count, 3)`` of the copies of a rig drawn side by side: ``(first + i) spacing`` along
-    ``axis``.
+def candidate_layout(count: int, spacing: float, *, columns: int = 2, first: float = 1.0) -> np.ndarray:
+    """Offsets ``(count, 3)`` of the copies of a rig drawn in a grid ``columns`` wide, ``spacing`` apart:
+    columns along x centred on the rig, rows below it (+y is down), the first ``first`` spacings down.
 
-    With ``first = 1`` the row starts one spacing beside the rig itself (which stays at the origin).
+    Two columns keep the four candidates of E about as wide as the scene they sit under, so the tab's
+    first camera shows the scene, its cameras and the candidates at a size one can read (a row of four
+    was four times wider than the scene).
     """
-    if count < 0 or not np.isfinite(spacing) or spacing <= 0:
-        raise InvalidValue("spacing", f"expected a positive spacing and a count >= 0, got {spacing} "
-                                      f"and {count}")
+    if count < 0 or columns < 1 or not np.isfinite(spacing) or spacing <= 0:
+        raise InvalidValue("spacing", f"expected a positive spacing, a count >= 0 and columns >= 1, got "
+                                      f"{spacing}, {count} and {columns}")
+    index = np.arange(count)
     offsets = np.zeros((count, 3))
-    offsets[:, axis] = (first + np.arange(count)) * spacing
+    offsets[:, 0] = (index % columns - (min(columns, max(count, 1)) - 1) / 2.0) * spacing
+    offsets[:, 1] = (first + index // columns) * spacing
     return offsets
 
 
@@ -112,8 +116,8 @@ def analyse_candidates(candidates: np.ndarray, K1: np.ndarray, K2: np.ndarray, x
     (exactly what ``recover_pose`` compares), ``chosen`` their argmax. At most
     :data:`MAX_CANDIDATE_POINTS` pairs are triangulated for drawing (:func:`candidate_points`). Each
     copy is scaled so that the chosen candidate's far depth is ``size`` in the scene (default: its own
-    size), and the copies go along x every ``1.6 size`` from ``1.4`` spacings on
-    (:func:`candidate_layout`), beside the scene and apart from each other.
+    size), and the copies go two by two every ``1.6 size``, the first row ``0.9`` spacings below the rig
+    (:func:`candidate_layout`): under the scene and apart from each other.
     """
     candidates = np.asarray(candidates, dtype=np.float64)
     if candidates.ndim != 3 or candidates.shape[1:] != (3, 4):
@@ -131,7 +135,7 @@ def analyse_candidates(candidates: np.ndarray, K1: np.ndarray, K2: np.ndarray, x
     baseline = float(np.linalg.norm(candidates[chosen][:, 3])) or 1.0
     far = float(np.percentile(depth, 95)) if len(depth) >= 3 else 8.0 * baseline
     size = far if size is None else float(size)
-    offsets = candidate_layout(len(candidates), 1.6 * size, first=1.4)
+    offsets = candidate_layout(len(candidates), 1.6 * size, first=0.9)
     return CandidateAnalysis(candidates, counts, chosen, len(x1), points, in_front, far, size / far, offsets,
                              source)
 
@@ -210,8 +214,8 @@ class PoseCandidates(Interaction):
             note = ("  \nThe chosen candidate is " + ("" if same else "**not** ")
                     + "the pose recover_pose returned.")
         return (f"Candidates from {a.source}; points: the session's inliers (or the truth's exact pairs). "
-                "Drawn beside the scene along x: green rig = passes, blue points in front of both cameras, "
-                "red behind one.\n\n" + "\n".join(rows) + note)
+                "Drawn below the scene, two by two: green rig = passes, blue points in front of both "
+                "cameras, red behind one.\n\n" + "\n".join(rows) + note)
 
     def _draw(self, a: CandidateAnalysis) -> None:
         for i in range(len(a.candidates)):
@@ -254,6 +258,18 @@ class PoseCandidates(Interaction):
     def scene_nodes(self) -> list[str]:
         with self.lock:
             return self.nodes.names()
+
+    def legend(self) -> list[LegendEntry]:
+        with self.lock:
+            a = self.analysis
+            if a is None or not self.show_box.value:
+                return []
+            return [LegendEntry("pose candidates", "rigs", len(a.candidates),
+                                (Swatch(CHOSEN_COLOR, "the candidate that passes (recover_pose's)"),
+                                 Swatch(OTHER_COLOR, "the other three"),
+                                 Swatch(IN_FRONT_COLOR, "points in front of both cameras"),
+                                 Swatch(BEHIND_COLOR, "points behind one")),
+                                "below the scene, two by two, each labelled with its count")]
 
     def close(self) -> None:
         with self.lock:
