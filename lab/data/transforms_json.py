@@ -108,8 +108,10 @@ def _number(container: dict, key: str, where: str) -> float:
     return float(value)
 
 
-def _intrinsics(frame: dict, top: dict, where: str) -> tuple[np.ndarray, tuple[int, int]]:
-    """K (lab convention) and (w, h) of one frame, per-frame keys overriding global ones."""
+def _intrinsics(frame: dict, top: dict, where: str,
+                default_size: tuple[int, int] | None = None) -> tuple[np.ndarray, tuple[int, int]]:
+    """K (lab convention) and (w, h) of one frame, per-frame keys overriding global ones; ``default_size``
+    stands in for a missing ``w`` and ``h``."""
     def get(key: str):
         return frame[key] if key in frame else top.get(key)
 
@@ -124,6 +126,9 @@ def _intrinsics(frame: dict, top: dict, where: str) -> tuple[np.ndarray, tuple[i
     if any(_number(merged, key, where) != 0.0 for key in distortion):
         raise InvalidValue(where, f"the camera has lens distortion {distortion}: undistort the images first "
                                   f"(the lab's cameras are pinhole)")
+    if default_size is not None:
+        merged.setdefault("w", default_size[0])
+        merged.setdefault("h", default_size[1])
     for key in ("w", "h"):
         if key not in merged:
             raise InvalidValue(where, f"no image size: {key!r} is missing")
@@ -150,8 +155,8 @@ def _intrinsics(frame: dict, top: dict, where: str) -> tuple[np.ndarray, tuple[i
     return K, (int(w), int(h))
 
 
-def read_transforms_json(path: str | Path) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray,
-                                                    tuple[str, ...]]:
+def read_transforms_json(path: str | Path, *, default_size: tuple[int, int] | None = None,
+                         ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, tuple[str, ...]]:
     """Read a nerfstudio / instant-ngp ``transforms.json`` into the lab's conventions.
 
     Returns ``K`` ``(N, 3, 3)`` (principal point moved by -0.5 px to the lab's pixel centres),
@@ -161,8 +166,9 @@ def read_transforms_json(path: str | Path) -> tuple[np.ndarray, np.ndarray, np.n
 
     The rotation block of each ``transform_matrix`` must be a rotation (to 1e-6; instant-ngp
     files that scale it are rejected) and is re-orthonormalized. Raises :class:`InvalidValue`
-    naming the frame for a missing size or focal length, lens distortion, a non-pinhole camera
-    model, or a malformed matrix.
+    naming the frame for a missing size (unless ``default_size`` ``(w, h)`` gives it: the NeRF-synthetic
+    Blender files state only ``camera_angle_x``, the size is their images'), a missing focal length, lens
+    distortion, a non-pinhole camera model, or a malformed matrix.
     """
     source = Path(path)
     if not source.is_file():
@@ -179,7 +185,7 @@ def read_transforms_json(path: str | Path) -> tuple[np.ndarray, np.ndarray, np.n
         where = f"frames[{index}]"
         if not isinstance(frame, dict) or "transform_matrix" not in frame or "file_path" not in frame:
             raise InvalidValue(where, "each frame needs 'file_path' and 'transform_matrix'")
-        K, size = _intrinsics(frame, data, where)
+        K, size = _intrinsics(frame, data, where, default_size)
         try:
             matrix = np.asarray(frame["transform_matrix"], dtype=np.float64)
         except (TypeError, ValueError):

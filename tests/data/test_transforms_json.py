@@ -152,3 +152,22 @@ def test_export_registry_writes_transforms_json(tmp_path):
     np.testing.assert_allclose(K, rec.K, atol=1e-12)
     np.testing.assert_array_equal(sizes, rec.sizes)
     assert names[0] == "frames/frame_000.png"
+
+
+def test_read_takes_a_default_size_for_files_that_state_none(tmp_path):
+    """NeRF-synthetic's Blender files give camera_angle_x and no w/h: the caller passes its images' size; a
+    size in the file wins, and without either the reader still names what is missing."""
+    rec = _reconstruction(views=2)
+    c2w = camera_to_world_opengl(rec.R, rec.t)
+    data = {"camera_angle_x": 2 * math.atan(320 / 500),
+            "frames": [{"file_path": f"./images/{i}", "transform_matrix": c2w[i].tolist()} for i in range(2)]}
+    (tmp_path / "transforms.json").write_text(json.dumps(data))
+    K, size, _, _, _ = read_transforms_json(tmp_path / "transforms.json", default_size=(640, 480))
+    np.testing.assert_allclose(K[0], [[500, 0, 319.5], [0, 500, 239.5], [0, 0, 1]], atol=1e-9)
+    assert tuple(size[0]) == (640, 480)
+    (tmp_path / "transforms.json").write_text(json.dumps({**data, "w": 320, "h": 240}))
+    _, size, _, _, _ = read_transforms_json(tmp_path / "transforms.json", default_size=(640, 480))
+    assert tuple(size[0]) == (320, 240)
+    (tmp_path / "transforms.json").write_text(json.dumps(data))
+    with pytest.raises(InvalidValue, match="no image size"):
+        read_transforms_json(tmp_path / "transforms.json")
