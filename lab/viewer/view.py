@@ -73,6 +73,7 @@ class ClientView:
         self.errors: list[str] = []
         self.closed = False
         self._seen: tuple[int, int] | None = None
+        self._drawn: dict[str, Any] = {}  # the values the last refresh drew (held_during_plan)
         self._synced: dict[str, dict[str, Any]] = {}  # per step, the ran_with its widgets were set to
         self._syncing = False  # the code is setting widgets (their callbacks must not mark anything stale)
         self._marked: str | None = None  # the step labelled "running"
@@ -223,7 +224,7 @@ class ClientView:
             self.clear_error()
             self.drawer.clear()
             self.camera.reset()
-            self._seen = None
+            self._seen, self._drawn = None, {}
             self.tab.session_id_text.value = session.id
             dropdown = self.tab.module_dropdown
             if session.pipeline.name not in dropdown.options:  # opened by id, not offered here
@@ -540,7 +541,8 @@ class ClientView:
             self.refresh()
 
     def refresh(self, *, force: bool = False) -> None:
-        """Bring every status, widget, metric and drawing up to date with the session."""
+        """Bring every status, widget, metric and drawing up to date with the session (while a plan runs,
+        what it dropped and will write again stays drawn: :func:`held_during_plan`)."""
         with self.lock:
             session = self.session
             if session is None or self.closed:
@@ -559,7 +561,9 @@ class ClientView:
             self._show_session(session, state, history)
             if session.running is None:
                 self.progress.idle(history)
-            self.drawer.sync(state, order=self._order(state))
+            drawn = {**held_during_plan(session, self._drawn, state, self.runner.planned), **state}
+            self._drawn = drawn
+            self.drawer.sync(drawn, order=self._order(drawn))
             self._update_interactions(state)
             if self.drawer.errors:
                 problems = "; ".join(f"{k}: {v}" for k, v in self.drawer.errors.items())
@@ -567,7 +571,7 @@ class ClientView:
             self.tab.media_panel.visible = any(not r.in_scene for r in map(renderer_for, state.values())
                                                if r is not None)
             self.camera.frame(state, self.interactions)
-            self.scene_panel.show(state, _producers(session, state))
+            self.scene_panel.show(drawn, _producers(session, drawn))
 
     def _pixel_clicked(self, image_name: str, view: int, pixel: np.ndarray) -> bool:
         """A click on a frustum's picture: the first interaction that takes the pixel gets it."""
@@ -655,7 +659,7 @@ class ClientView:
         self.tab.error_box.content = ""
 
 
-__all__ = ["ClientView", "ParamsSource", "status_during_plan"]
+__all__ = ["ClientView", "ParamsSource", "held_during_plan", "status_during_plan"]
 
 
 def status_during_plan(session: Session, status: Mapping[str, StepStatus], planned: Sequence[str], *,
@@ -682,6 +686,17 @@ def status_during_plan(session: Session, status: Mapping[str, StepStatus], plann
         if all(name in state or name in coming for name in spec.writes):
             labels[spec.name] = "stale" if spec.name in stale else "done"
     return labels
+
+
+def held_during_plan(session: Session, drawn: Mapping[str, Any], state: Mapping[str, Any],
+                     planned: Sequence[str]) -> dict[str, Any]:
+    """The values drawn before (``drawn``) that the steps ``planned`` dropped and will write again: they
+    stay on screen until those steps write them (SfM's cameras would vanish while bundle adjustment runs,
+    :func:`status_during_plan`); none once the plan ended."""
+    if not planned:
+        return {}
+    coming = {name for step in planned for name in session.pipeline.step(step).writes}
+    return {name: value for name, value in drawn.items() if name in coming and name not in state}
 
 
 def _producers(session: Session, state: Mapping[str, Any]) -> dict[str, str]:

@@ -1,7 +1,8 @@
 """What watching a long step costs (issue 16): a burst of progress snapshots draws a bounded number of
 previews, each the latest values; a slow preview makes the next wait; the step's result is always drawn;
-a preview value that did not change is not sent again. And a done step's label stays "done" while a later
-step of the plan runs, though that plan dropped one of its outputs for a moment (SfM's shared names).
+a preview value that did not change is not sent again. And a done step's label stays "done", and its value
+drawn, while a later step of the plan runs, though the plan dropped that value for a moment (SfM's shared
+names).
 
 The panel's clock is a fake one the test steps advance, so the counts do not depend on the machine."""
 
@@ -170,6 +171,7 @@ def test_an_unchanged_preview_value_is_sent_once(server, store, cheap_previews):
 
 # --- labels while a plan runs -----------------------------------------------------------------------------
 LABELS: list[str] = []
+SHOWN: list[bool] = []  # whether the shared value is drawn, at each snapshot of adjust
 VIEW: list[ClientView] = []
 
 
@@ -206,6 +208,7 @@ def adjust(filtered: np.ndarray) -> Generator[Progress, None, Adjusted]:
     for i in range(3):
         view = VIEW[0]
         LABELS.append(view.rows["reconstruct"].folder.label)
+        SHOWN.append(view.scene.get_handle_by_name("/lab/shown") is not None)
         yield Progress(i + 1, 3, 1.0)
     return Adjusted(filtered * 2, PointCloud(np.ones((2, 3))))
 
@@ -222,10 +225,13 @@ def test_a_done_step_stays_done_while_a_later_step_rewrites_a_name_it_shares(ser
     done = step_label(0, SHARED.step("reconstruct"), "done")
     assert view.rows["reconstruct"].folder.label == done
     LABELS.clear()
+    SHOWN.clear()
     view.press("filter_stage", "Run")  # filter_stage, then adjust (its dependant): adjust's `shown` dropped
     assert LABELS and all(label == done for label in LABELS)  # it read "ready" while adjust ran
+    assert SHOWN and all(SHOWN)  # and the value vanished from the scene until adjust wrote it again
     assert view.rows["reconstruct"].folder.label == done
     assert view.session.step_status()["reconstruct"] == "done"
+    np.testing.assert_array_equal(view.scene.get_handle_by_name("/lab/shown").points, np.ones((2, 3)))
 
 
 def test_once_the_plan_ends_the_label_says_what_the_session_has(server, store):
@@ -236,3 +242,4 @@ def test_once_the_plan_ends_the_label_says_what_the_session_has(server, store):
     view.press("filter_stage", "Run")  # adjust is not re-run: its `shown`, and the first step's, are gone
     assert view.session.step_status()["reconstruct"] == "ready"
     assert view.rows["reconstruct"].folder.label == step_label(0, SHARED.step("reconstruct"), "ready")
+    assert view.scene.get_handle_by_name("/lab/shown") is None
