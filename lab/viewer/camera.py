@@ -26,9 +26,9 @@ from typing import Any
 import numpy as np
 
 from lab.core.errors import InvalidValue
-from lab.core.values import PointCloud
+from lab.core.values import Cameras, PointCloud
 from lab.viewer.interactions import Interaction
-from lab.viewer.renderers import points_of, viewpoint
+from lab.viewer.renderers import frustum_corners, points_of, scene_extent, viewpoint
 
 log = logging.getLogger("lab.viewer")
 
@@ -181,12 +181,15 @@ def framing(state: Mapping[str, Any], interactions: Iterable[Interaction] = (),
 def aim(state: Mapping[str, Any],
         interactions: Iterable[Interaction] = ()) -> tuple[np.ndarray, np.ndarray] | None:
     """What to frame and which way to look: the content points ``(N, 3)`` (:func:`robust_points` of the
-    state's values, and the corners of each interaction's :meth:`~Interaction.bounds`) and the
+    state's values, the corners of its camera frustums' pictures, and the corners of each interaction's
+    :meth:`~Interaction.bounds`) and the
     viewing direction ``(3,)`` of :func:`viewpoint` over the state's values and the interactions' boxes; None
     when nothing is drawn in 3D."""
     interactions = list(interactions)
     boxes = [b for b in (i.bounds() for i in interactions) if b is not None and np.all(np.isfinite(b))]
-    points = np.concatenate([robust_points(state.values()), *(box_corners(b) for b in boxes)])
+    extent = scene_extent(state.values())  # what the frustums are drawn the size of
+    glyphs = [frustum_corners(v, extent) for v in state.values() if isinstance(v, Cameras)]
+    points = np.concatenate([robust_points(state.values()), *glyphs, *(box_corners(b) for b in boxes)])
     if not len(points):
         return None
     view = viewpoint([*state.values(), *(PointCloud(box_corners(b)) for b in boxes)])

@@ -35,6 +35,8 @@ from lab.viewer.plots import chart_axes
 #: Root of every node this module adds to a scene.
 SCENE_ROOT = "/lab"
 
+#: A camera frustum's size (viser's ``scale``) as a share of the scene's extent (:func:`scene_extent`).
+FRUSTUM_SHARE = 0.06
 #: Largest side, in pixels, of an image sent to the GUI panel / carried on a frustum.
 PANEL_MAX_SIDE = 640
 FRUSTUM_MAX_SIDE = 320
@@ -304,12 +306,18 @@ def scene_bounds(values: Iterable[Any]) -> np.ndarray | None:
     return np.stack([lo, hi])
 
 
+#: How far below the cameras' mean optical axis the viewer's camera looks (y is down): a slight look down.
+LOOK_DOWN = 0.35
+
+
 def viewpoint(values: Iterable[Any]) -> tuple[np.ndarray, np.ndarray] | None:
     """Where to put the user's camera to see the 3D values: ``(position, look_at)``, or None.
 
-    With cameras in the scene, the eye sits behind and above their mean centre along their mean
-    viewing direction (seeing what they see, e.g. the board they surround); otherwise it looks
-    at the content's centre from behind and above (world up is -y, OpenCV's convention).
+    With cameras in the scene, the eye looks along their mean viewing direction tilted a little down
+    (:data:`LOOK_DOWN`), from behind and above their content (seeing what they see, e.g. the board they
+    surround, whatever else is drawn beside it); otherwise it looks at the content's centre from the front
+    and above (world up is -y, OpenCV's convention). :func:`lab.viewer.camera.fit_camera` then moves the eye
+    along that direction so the content fills the browser's canvas.
     """
     values = list(values)
     bounds = scene_bounds(values)
@@ -317,15 +325,14 @@ def viewpoint(values: Iterable[Any]) -> tuple[np.ndarray, np.ndarray] | None:
         return None
     center = bounds.mean(axis=0)
     size = max(float(np.linalg.norm(bounds[1] - bounds[0])), 1e-3)
+    direction = np.array([-0.35, 0.6, 1.1])
     cameras = [v for v in values if isinstance(v, Cameras) and len(v)]
     if cameras:
-        centers = np.concatenate([c.centers for c in cameras])
         forward = np.concatenate([c.R[:, 2, :] for c in cameras]).mean(axis=0)  # optical axes in the world
         if np.linalg.norm(forward) > 1e-6:
-            forward /= np.linalg.norm(forward)
-            eye = centers.mean(axis=0) - 1.2 * size * forward + np.array([0.0, -0.4 * size, 0.0])
-            return eye, center
-    return center + size * np.array([0.35, -0.6, -1.1]), center
+            direction = forward / np.linalg.norm(forward) + np.array([0.0, LOOK_DOWN, 0.0])
+    direction = direction / np.linalg.norm(direction)
+    return center - 1.3 * size * direction, center
 
 
 def scene_extent(values: Iterable[Any]) -> float:
@@ -454,7 +461,7 @@ class CamerasRenderer(Renderer):
         drawn = Drawn(self.fingerprint(name, value, state, canvas))
         drawn.handles.append(canvas.scene.add_frame(_node(name), show_axes=False))
         views = value.views if value.views is not None else np.arange(len(value))
-        scale = 0.06 * canvas.extent
+        scale = FRUSTUM_SHARE * canvas.extent
         for i in range(len(value)):
             view = int(views[i])
             picture = None
@@ -493,6 +500,21 @@ def frustum_plane_depth(fov: float, aspect: float, scale: float) -> float:
     ``z = scale / cbrt(tan(fov / 2)^2 aspect / 3)`` (viser's CameraFrustumVariants.tsx)."""
     half = math.tan(fov / 2.0)
     return scale / ((half * half * aspect / 3.0) ** (1.0 / 3.0))
+
+
+def frustum_corners(cameras: Cameras, extent: float) -> np.ndarray:
+    """``(4 N, 3)`` world corners of the pictures of the ``N`` frustums :class:`CamerasRenderer` draws in a
+    scene of extent ``extent`` (:func:`frustum_plane_depth`; what framing the camera must keep in view)."""
+    corners = []
+    for i in range(len(cameras)):
+        fy = cameras.K[i, 1, 1]
+        fov = 2.0 * math.atan2(cameras.height / 2.0, fy) if fy > 0 else math.radians(60)
+        aspect = cameras.width / cameras.height
+        depth = frustum_plane_depth(fov, aspect, FRUSTUM_SHARE * extent)
+        half_y = depth * math.tan(fov / 2.0)
+        local = np.array([[sx * half_y * aspect, sy * half_y, depth] for sx in (-1, 1) for sy in (-1, 1)])
+        corners.append((local - cameras.t[i]) @ cameras.R[i])  # camera -> world: X = R^T (X_c - t)
+    return np.concatenate(corners) if corners else np.zeros((0, 3))
 
 
 def frustum_click_pixel(cameras: Cameras, index: int, *, fov: float, scale: float, ray_origin: Any,
@@ -775,7 +797,7 @@ class StateDrawer:
         self.errors.clear()
 
 
-__all__ = ["CLOUD_COLORS", "OVERLAY_TYPES", "PLAIN_MESH_OPACITY", "RENDERERS", "SCENE_ROOT", "Canvas",
-           "Drawn", "Renderer", "StateDrawer", "curve_image", "default_cloud_colors", "overlay_view",
-           "overlays_of", "renderer_for", "scene_bounds", "scene_extent", "to_rgb8", "uplot_config",
-           "viewpoint", "wxyz_from_matrix"]
+__all__ = ["CLOUD_COLORS", "FRUSTUM_SHARE", "OVERLAY_TYPES", "PLAIN_MESH_OPACITY", "RENDERERS", "SCENE_ROOT",
+           "Canvas", "Drawn", "Renderer", "StateDrawer", "curve_image", "default_cloud_colors",
+           "frustum_corners", "overlay_view", "overlays_of", "renderer_for", "scene_bounds", "scene_extent",
+           "to_rgb8", "uplot_config", "viewpoint", "wxyz_from_matrix"]

@@ -199,3 +199,18 @@ def test_epipolar_cameras_and_pose_candidates_are_in_view_and_not_tiny(server, r
     xy = project(state["cameras"].centers, pose, CANVAS)
     assert np.all((xy > 0.05) & (xy < 0.95))
     view.close()
+
+
+def test_the_frustum_pictures_are_framed_not_only_the_camera_centres():
+    from lab.viewer.renderers import FRUSTUM_SHARE, frustum_corners, frustum_plane_depth
+
+    # one camera at the origin looking along +z, 90 degrees vertical fov, 4:3
+    K = np.array([[[2.0, 0, 2.0], [0, 1.5, 1.5], [0, 0, 1]]])
+    cameras = Cameras(K, np.eye(3)[None], np.zeros((1, 3)), width=4, height=3)
+    corners = frustum_corners(cameras, 10.0)
+    depth = frustum_plane_depth(math.pi / 2, 4 / 3, FRUSTUM_SHARE * 10.0)
+    np.testing.assert_allclose(corners[:, 2], depth)
+    np.testing.assert_allclose(np.abs(corners[:, 1]), depth)  # tan(45 degrees) = 1
+    np.testing.assert_allclose(np.abs(corners[:, 0]), depth * 4 / 3)
+    points, _ = aim({"cameras": cameras}, [])
+    assert len(points) == 1 + 4

@@ -377,7 +377,7 @@ class GrowthExplorer(Interaction):
     def _label(self, name: str, plane: Plane, text: str) -> None:
         above = label_position(plane)
         self.nodes.put(name, lambda: self.ctx.scene.add_label(self.ctx.node("efros_leung", name), text,
-                                                              position=above))
+                                                              position=above, anchor="bottom-center"))
 
     def _image_node(self, name: str, plane: Plane, rgb: np.ndarray, *, clickable: bool) -> None:
         handle = self.nodes.handles.get(name)
@@ -517,7 +517,8 @@ class QuiltExplorer(Interaction):
         self.plane = plane = Plane((0.0, QUILT_ROW_Y, 0.0), quilting.width, quilting.height, scale)
         above = label_position(plane)
         self.nodes.put("label", lambda: self.ctx.scene.add_label(self.ctx.node("quilting", "label"),
-                                                                 "quilting (click a block)", position=above))
+                                                                 "quilting (click a block)", position=above,
+                                                                 anchor="bottom-center"))
         handle = self.nodes.put("quilt", lambda: self.ctx.scene.add_image(
             self.ctx.node("quilting", "image"), to_rgb8(quilting.pixels), quilting.width * scale,
             quilting.height * scale, format="png", position=plane.position, cast_shadow=False,
