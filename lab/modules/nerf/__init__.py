@@ -20,6 +20,7 @@ The package (this file is its only import surface):
     encoding.py    the positional encoding gamma(p)
     rendering.py   volume rendering (weights, colour, depth, opacity) and inverse-CDF sampling
     model.py       the NeRF MLP and rendering rays and images through it
+    grid.py        the accelerated variant: a voxel grid trained coarse to fine, empty space skipped
     training.py    the training loop (a generator yielding progress and previews)
     reference.py   slow readable loop versions of the fast functions: the tests' oracles
     evaluate.py    PSNR, SSIM, depth error of held-out views
@@ -34,7 +35,8 @@ State names:
     ray_lines       Segments3D      a few of them, near to far, in their pixel's colour
     encoding        EncodingConfig  L for positions and directions, identity or not
     encoding_plot   Curve           p and sin(2^k pi p) over [-1, 1]
-    model           NerfCheckpoint  the trained network's weights and configuration
+    model           NerfCheckpoint  the trained network's weights and configuration (method mlp)
+                    | GridCheckpoint  or the trained grid's values (method grid)
     loss_curve      Curve           the photometric loss over iterations
     psnr_curve      Curve           the batch PSNR over iterations
     preview         Image           training view 0 rendered by the final model (at most 64 px)
@@ -58,18 +60,20 @@ from lab.modules.nerf.rays import camera_rays, cameras_rays, pixel_centres, scal
 from lab.modules.nerf.reference import (camera_rays_reference, positional_encoding_reference,
                                         sample_pdf_reference, stratified_samples_reference,
                                         volume_render_reference)
-from lab.modules.nerf.rendering import (VolumeRendering, hierarchical_samples, interval_lengths, sample_pdf,
-                                        volume_render)
-from lab.modules.nerf.steps import (encode_positions, generate_rays, render_held_out, render_view,
-                                    train_nerf)
+from lab.modules.nerf.grid import GridCheckpoint, GridField, render_grid
+from lab.modules.nerf.rendering import (PackedRendering, VolumeRendering, hierarchical_samples,
+                                        interval_lengths, sample_pdf, volume_render, volume_render_packed)
+from lab.modules.nerf.steps import (FieldRenderer, encode_positions, generate_rays, render_held_out,
+                                    render_view, train_nerf)
 from lab.modules.nerf.values import EncodingConfig, FieldConfig, NerfCheckpoint, RayBundle, SceneBounds
 
 PIPELINE = Pipeline.build(
     name="nerf",
     title="Neural radiance fields",
     summary="NeRF step by step on a CPU: rays through every pixel, the positional encoding, an MLP of "
-            "density and colour trained by volume rendering (stratified and hierarchical samples), then "
-            "held-out views rendered and compared (PSNR, SSIM, depth error).",
+            "density and colour trained by volume rendering (stratified and hierarchical samples) or, much "
+            "faster, a voxel grid trained coarse to fine, then held-out views rendered and compared (PSNR, "
+            "SSIM, depth error).",
     steps=[generate_rays, encode_positions, train_nerf, render_held_out, render_view],
     datasets=[synthetic_object, nerf_synthetic],
     evaluations=EVALUATIONS,
@@ -77,13 +81,14 @@ PIPELINE = Pipeline.build(
 )
 
 __all__ = [
-    "DENSITY_SHIFT", "EVALUATIONS", "PIPELINE", "EncodingConfig", "FieldConfig", "NerfCheckpoint", "NerfMLP",
-    "RayBundle", "RayRendering", "SceneBounds", "VolumeRendering", "camera_rays", "camera_rays_reference",
-    "cameras_rays", "depth_error", "encode_positions", "encoding_size", "evaluate_held_out", "generate_rays",
-    "hemisphere_cameras", "hierarchical_samples", "image_psnr", "image_ssim", "interval_lengths",
-    "nerf_synthetic", "network_from", "object_scene", "pixel_centres", "positional_encoding",
-    "positional_encoding_reference", "render_held_out", "render_image", "render_rays", "render_view",
-    "sample_pdf", "sample_pdf_reference", "scaled_cameras", "stratified_samples",
-    "stratified_samples_reference", "synthetic_object", "train_nerf", "volume_render",
-    "volume_render_reference",
+    "DENSITY_SHIFT", "EVALUATIONS", "PIPELINE", "EncodingConfig", "FieldConfig", "FieldRenderer",
+    "GridCheckpoint", "GridField", "NerfCheckpoint", "NerfMLP", "PackedRendering", "RayBundle",
+    "RayRendering", "SceneBounds", "VolumeRendering", "camera_rays", "camera_rays_reference",
+    "cameras_rays", "depth_error", "encode_positions", "encoding_size", "evaluate_held_out",
+    "generate_rays", "hemisphere_cameras", "hierarchical_samples", "image_psnr", "image_ssim",
+    "interval_lengths", "nerf_synthetic", "network_from", "object_scene", "pixel_centres",
+    "positional_encoding", "positional_encoding_reference", "render_grid", "render_held_out",
+    "render_image", "render_rays", "render_view", "sample_pdf", "sample_pdf_reference", "scaled_cameras",
+    "stratified_samples", "stratified_samples_reference", "synthetic_object", "train_nerf",
+    "volume_render", "volume_render_packed", "volume_render_reference",
 ]

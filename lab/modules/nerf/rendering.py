@@ -128,5 +128,43 @@ def hierarchical_samples(t: torch.Tensor, weights: torch.Tensor, far: float | to
     return merged
 
 
-__all__ = ["PDF_EPSILON", "VolumeRendering", "hierarchical_samples", "interval_lengths", "sample_pdf",
-           "volume_render"]
+@dataclass(frozen=True, eq=False)
+class PackedRendering:
+    """What :func:`volume_render_packed` computes: per ray ``color`` ``(R, 3)``, ``depth`` and ``opacity``
+    ``(R,)``; per sample ``weights`` ``(K,)``."""
+
+    color: torch.Tensor
+    depth: torch.Tensor
+    opacity: torch.Tensor
+    weights: torch.Tensor
+
+
+def volume_render_packed(sigma: torch.Tensor, rgb: torch.Tensor, t: torch.Tensor, delta: torch.Tensor,
+                         ray: torch.Tensor, rays: int, *, far: float,
+                         background: torch.Tensor | None = None) -> PackedRendering:
+    """:func:`volume_render` of samples packed ray after ray (nerfacc's layout): sample ``k`` of density
+    ``sigma`` ``(K,)``, colour ``rgb`` ``(K, 3)``, depth ``t`` ``(K,)`` and interval length ``delta`` ``(K,)``
+    (a distance) belongs to ray ``ray[k]`` (non-decreasing, in ``[0, rays)``); samples left out of a ray
+    are empty space (density 0), so rays keep different numbers of samples. ``T_k`` is the exclusive
+    sum of ``sigma delta`` within the ray, from one float64 running sum over all samples minus its value
+    where the ray starts. Oracle: :func:`volume_render` on the dense samples with zero densities where
+    samples are left out.
+    """
+    tau = (sigma * delta).double()
+    running = torch.cumsum(tau, dim=0) - tau                                # exclusive, across rays
+    counts = torch.bincount(ray, minlength=rays)
+    starts = torch.cumsum(counts, dim=0) - counts
+    base = running[starts.clamp(max=max(len(tau) - 1, 0))] if len(tau) else running.new_zeros(rays)
+    transmittance = torch.exp(-(running - base[ray])).to(sigma.dtype)
+    weights = transmittance * -torch.expm1(-sigma * delta)
+    opacity = torch.zeros(rays, dtype=sigma.dtype, device=sigma.device).index_add(0, ray, weights)
+    color = torch.zeros((rays, 3), dtype=sigma.dtype, device=sigma.device).index_add(0, ray,
+                                                                                     weights[:, None] * rgb)
+    if background is not None:
+        color = color + (1.0 - opacity)[:, None] * background
+    depth = torch.zeros(rays, dtype=sigma.dtype, device=sigma.device).index_add(0, ray, weights * t)
+    return PackedRendering(color, depth + (1.0 - opacity) * far, opacity, weights)
+
+
+__all__ = ["PDF_EPSILON", "PackedRendering", "VolumeRendering", "hierarchical_samples", "interval_lengths",
+           "sample_pdf", "volume_render", "volume_render_packed"]

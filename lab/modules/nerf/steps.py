@@ -22,12 +22,14 @@ import torch
 from lab.core import (Cameras, Curve, Image, ImageSet, InvalidControl, InvalidValue, Progress, Range,
                       Segments3D, metric, step_result)
 from lab.modules.nerf.encoding import encoding_size, positional_encoding
+from lab.modules.nerf.grid import (GridCheckpoint, GridField, GridOptions, grid_checkpoint_from, grid_from,
+                                   grid_step, render_grid, render_grid_image, train_grid_field)
 from lab.modules.nerf.model import (ImageRendering, NerfMLP, checkpoint_from, network_from, render_image,
                                     render_rays)
 from lab.modules.nerf.rays import cameras_rays, scaled_cameras
 from lab.modules.nerf.training import PreviewRays, TrainingOptions, train_field, training_curves
 from lab.modules.nerf.values import (EncodingConfig, FieldConfig, NerfCheckpoint, RayBundle, SceneBounds,
-                                     as_bounds, as_checkpoint, as_encoding, as_rays)
+                                     as_bounds, as_encoding, as_rays)
 
 #: Largest side of the preview rendered while training.
 PREVIEW_SIDE = 64
@@ -138,7 +140,7 @@ def encode_positions(*, frequencies: Annotated[int, Range(0, 16)] = 6,
 class TrainResult:
     """Result of :func:`train_nerf`."""
 
-    model: NerfCheckpoint
+    model: NerfCheckpoint | GridCheckpoint
     loss_curve: Curve
     psnr_curve: Curve
     preview: Image
@@ -147,13 +149,17 @@ class TrainResult:
     iterations: int = metric("optimizer steps taken")
     train_seconds: float = metric("training time, previews excluded", unit="s")
     rays_per_second: float = metric("training rays rendered per second")
+    samples_per_ray: float = metric("samples per ray evaluated with gradient (last tenth of the run)")
 
 
 def train_nerf(rays: RayBundle, encoding: EncodingConfig, cameras: Cameras, *,
+               method: Literal["mlp", "grid"] = "mlp",
                samples: Annotated[int, Range(2, 512)] = 32, fine_samples: Annotated[int, Range(0, 512)] = 0,
                hidden: Annotated[int, Range(8, 512)] = 64, layers: Annotated[int, Range(1, 12)] = 4,
+               grid_resolution: Annotated[int, Range(8, 512)] = 128,
                batch_rays: Annotated[int, Range(1, 65536)] = 1024,
                learning_rate: Annotated[float, Range(1e-6, 1.0)] = 5e-3,
+               grid_learning_rate: Annotated[float, Range(1e-6, 10.0)] = 0.6,
                lr_decay: Annotated[float, Range(1e-4, 1.0)] = 0.1,
                iterations: Annotated[int, Range(1, 1000000)] = 1000,
                budget_seconds: Annotated[float, Range(0.0, 36000.0)] = 0.0,
@@ -163,55 +169,111 @@ def train_nerf(rays: RayBundle, encoding: EncodingConfig, cameras: Cameras, *,
     """Train the radiance field: render random batches of training rays and fit their pixels' colours
     (Mildenhall et al. 2020, sections 4 and 5.3).
 
-    Each ray gets ``samples`` jittered stratified depths in ``[near, far]`` (eq. 2) and, with
-    ``fine_samples`` > 0, that many more drawn from the coarse weights by inverse-CDF sampling (section
-    5.2); the MLP gives density and colour at every sample and volume rendering (eq. 3) composites them
-    over the ``background``. Adam on the mean squared error; the learning rate decays exponentially to
-    ``lr_decay`` times its start over the budget. Stops after ``iterations`` or ``budget_seconds`` of
-    training (0: no time limit), whichever comes first. Yields the loss and PSNR every 10 iterations
-    and a preview of training view 0 (at most 64 px) every ``preview_every``. The defaults are the
-    classic course project's "vanilla" NeRF scaled to a CPU (their batch: 4096 rays).
+    ``mlp`` (the NeRF): each ray gets ``samples`` jittered stratified depths in ``[near, far]`` (eq. 2)
+    and, with ``fine_samples`` > 0, that many more drawn from the coarse weights by inverse-CDF sampling
+    (section 5.2); the MLP gives density and colour at every sample and volume rendering (eq. 3)
+    composites them over the ``background``; Adam with ``learning_rate`` decaying exponentially to
+    ``lr_decay`` times its start over the budget. The defaults are the classic course project's "vanilla"
+    NeRF scaled to a CPU (their batch: 4096 rays). ``grid`` (the accelerated variant,
+    :mod:`~lab.modules.nerf.grid`): density and colour on a voxel grid trained coarse to fine up to
+    ``grid_resolution``^3 with ``grid_learning_rate``, empty space skipped and rays terminated early.
+    Stops after ``iterations`` or ``budget_seconds`` of training (0: no time limit), whichever comes
+    first. Yields the loss and PSNR every 10 iterations and a preview of training view 0 (at most 64 px)
+    every ``preview_every``.
 
     Args:
-        samples: stratified samples per ray.
-        fine_samples: extra samples per ray from the coarse weights (0: no hierarchical sampling).
+        method: mlp (NeRF's network) or grid (the accelerated voxel grid).
+        samples: stratified samples per ray (mlp).
+        fine_samples: extra samples per ray from the coarse weights (mlp; 0: no hierarchical sampling).
         hidden: width of the MLP.
         layers: layers of the MLP's trunk (from 4 on, gamma(x) is fed again half way).
+        grid_resolution: vertices per side of the finest grid (grid).
         batch_rays: rays per optimizer step.
-        learning_rate: Adam's initial learning rate.
-        lr_decay: the learning rate at the end of the budget, as a fraction of the initial one.
+        learning_rate: Adam's initial learning rate (mlp).
+        grid_learning_rate: Adam's initial learning rate on the grid's values (grid).
+        lr_decay: the learning rate at the end of the budget, as a fraction of the initial one (mlp).
         iterations: most optimizer steps.
         budget_seconds: most seconds of training (0: only the iterations count).
         preview_every: iterations between two preview renderings.
         background: the colour behind the scene (white for object datasets).
     """
     bundle = as_rays(rays)
-    config = FieldConfig(as_encoding(encoding), hidden, layers, samples, fine_samples)
     colour = torch.tensor(BACKGROUNDS[background], dtype=torch.float32, device=device)
     small = scaled_cameras(cameras, min(1.0, PREVIEW_SIDE / max(cameras.width, cameras.height)))
     origins, directions = cameras_rays(small, device=device)
     preview = PreviewRays(origins[0], directions[0], (small.height, small.width))
-    options = TrainingOptions(batch_rays, learning_rate, lr_decay, iterations, budget_seconds, preview_every)
-    run = yield from train_field(bundle, config, options, background=colour, preview=preview, rng=rng,
-                                 device=device)
+    back = np.asarray(BACKGROUNDS[background])
+    model: NerfCheckpoint | GridCheckpoint
+    if method == "grid":
+        grid_options = GridOptions(grid_resolution, batch_rays, grid_learning_rate, iterations,
+                                   budget_seconds, preview_every)
+        run = yield from train_grid_field(bundle, grid_options, background=colour, preview=preview, rng=rng,
+                                          device=device)
+        assert isinstance(run.net, GridField)
+        model = grid_checkpoint_from(run.net, bundle.bounds, back)
+    else:
+        config = FieldConfig(as_encoding(encoding), hidden, layers, samples, fine_samples)
+        options = TrainingOptions(batch_rays, learning_rate, lr_decay, iterations, budget_seconds,
+                                  preview_every)
+        run = yield from train_field(bundle, config, options, background=colour, preview=preview, rng=rng,
+                                     device=device)
+        assert isinstance(run.net, NerfMLP)
+        model = checkpoint_from(run.net, bundle.bounds, back)
     tail = max(1, run.iterations // 10)
     loss_curve, psnr_curve = training_curves(run)
-    final = render_image(run.net.eval(), preview.origins, preview.directions, bundle.bounds, preview.shape,
-                         background=colour)
-    checkpoint = checkpoint_from(run.net, bundle.bounds, np.asarray(BACKGROUNDS[background]))
-    return TrainResult(checkpoint, loss_curve, psnr_curve, Image(final.color, name="training view 0"),
+    final = FieldRenderer(model, device).image(preview.origins, preview.directions, preview.shape)
+    return TrainResult(model, loss_curve, psnr_curve, Image(final.color, name="training view 0"),
                        float(run.losses[-tail:].mean()), float(np.minimum(run.psnrs[-tail:], 99.0).mean()),
-                       run.iterations, run.seconds, run.iterations * batch_rays / max(run.seconds, 1e-9))
+                       run.iterations, run.seconds, run.iterations * batch_rays / max(run.seconds, 1e-9),
+                       run.samples_per_ray)
 
 
 # ----------------------------------------------------------------------------------------------------
 # 4-5. Rendering
 # ----------------------------------------------------------------------------------------------------
-def _render_views(net: NerfMLP, model: NerfCheckpoint, cameras: Cameras, device: str) -> list[ImageRendering]:
-    origins, directions = cameras_rays(cameras, device=device)
-    background = torch.as_tensor(model.background, device=device)
-    return [render_image(net, origins[v], directions[v], model.bounds, (cameras.height, cameras.width),
-                         background=background) for v in range(len(cameras))]
+class FieldRenderer:
+    """A trained model (either kind) made ready to render on ``device``: whole views and single rays."""
+
+    def __init__(self, model: object, device: str) -> None:
+        if not isinstance(model, (NerfCheckpoint, GridCheckpoint)):
+            raise InvalidValue("model", f"expected a NerfCheckpoint or a GridCheckpoint, got "
+                                        f"{type(model).__name__}: run train_nerf")
+        self.model = model
+        self.device = device
+        self.background = torch.as_tensor(model.background, device=device)
+        self.net = network_from(model, device) if isinstance(model, NerfCheckpoint) else None
+        self.grid = grid_from(model, device) if isinstance(model, GridCheckpoint) else None
+
+    def image(self, origins: torch.Tensor, directions: torch.Tensor,
+              shape: tuple[int, int]) -> ImageRendering:
+        """One view from its rays ``(H * W, 3)``."""
+        if self.grid is not None:
+            return render_grid_image(self.grid, origins, directions, self.model.bounds, shape,
+                                     background=self.background)
+        assert self.net is not None
+        return render_image(self.net, origins, directions, self.model.bounds, shape,
+                            background=self.background)
+
+    def ray(self, origin: torch.Tensor, direction: torch.Tensor) -> tuple[np.ndarray, np.ndarray]:
+        """Depths and weights of the samples of one ray ``(1, 3)`` (of its last pass; a grid's evaluated
+        samples)."""
+        with torch.no_grad():
+            if self.grid is not None:
+                out, t = render_grid(self.grid, origin, direction, self.model.bounds,
+                                     step=grid_step(self.grid), background=self.background,
+                                     occupied=self.grid.occupancy())
+                return t.cpu().numpy(), out.weights.cpu().numpy()
+            assert self.net is not None
+            ray = render_rays(self.net, origin, direction, self.model.bounds, background=self.background,
+                              jitter=False)
+            t = ray.t_coarse if ray.t_fine is None else ray.t_fine
+            return t[0].cpu().numpy(), ray.final.weights[0].cpu().numpy()
+
+    def views(self, cameras: Cameras) -> list[ImageRendering]:
+        """Every view of ``cameras``."""
+        origins, directions = cameras_rays(cameras, device=self.device)
+        shape = (cameras.height, cameras.width)
+        return [self.image(origins[v], directions[v], shape) for v in range(len(cameras))]
 
 
 @step_result
@@ -224,12 +286,13 @@ class HeldOutResult:
     render_seconds: float = metric("time to render every held-out view", unit="s")
 
 
-def render_held_out(model: NerfCheckpoint, test_cameras: Cameras, *, device: str = "cpu") -> HeldOutResult:
+def render_held_out(model: NerfCheckpoint | GridCheckpoint, test_cameras: Cameras, *,
+                    device: str = "cpu") -> HeldOutResult:
     """Render every held-out view (no jitter; fine samples placed deterministically) for evaluation:
     colour ``(H, W, 3)``, expected depth and opacity ``(H, W)`` per view (see :func:`render_view`)."""
-    checkpoint = as_checkpoint(model)
+    renderer = FieldRenderer(model, device)
     started = time.perf_counter()
-    views = _render_views(network_from(checkpoint, device), checkpoint, test_cameras, device)
+    views = renderer.views(test_cameras)
     seconds = time.perf_counter() - started
     return HeldOutResult(ImageSet(tuple(Image(v.color, name=f"held-out {i}") for i, v in enumerate(views))),
                          np.stack([v.depth for v in views]), np.stack([v.opacity for v in views]), seconds)
@@ -246,8 +309,8 @@ class ViewResult:
     render_seconds: float = metric("time to render the view", unit="s")
 
 
-def render_view(model: NerfCheckpoint, test_cameras: Cameras, *, view: Annotated[int, Range(0, 1000)] = 0,
-                pixel_u: Annotated[int, Range(-1, 10000)] = -1,
+def render_view(model: NerfCheckpoint | GridCheckpoint, test_cameras: Cameras, *,
+                view: Annotated[int, Range(0, 1000)] = 0, pixel_u: Annotated[int, Range(-1, 10000)] = -1,
                 pixel_v: Annotated[int, Range(-1, 10000)] = -1, device: str = "cpu") -> ViewResult:
     """Render held-out camera ``view``: its colour, its depth map (expected termination depth
     ``sum w_i t_i``, the unabsorbed rest at far; shown from near = black to far = white) and opacity
@@ -259,7 +322,7 @@ def render_view(model: NerfCheckpoint, test_cameras: Cameras, *, view: Annotated
         pixel_u: column of the pixel whose ray's weights are plotted (-1: the centre column).
         pixel_v: row of that pixel (-1: the centre row).
     """
-    checkpoint = as_checkpoint(model)
+    renderer = FieldRenderer(model, device)
     if not 0 <= view < len(test_cameras):
         raise InvalidControl("view", f"must be in [0, {len(test_cameras) - 1}], got {view}")
     u = test_cameras.width // 2 if pixel_u < 0 else pixel_u
@@ -270,23 +333,20 @@ def render_view(model: NerfCheckpoint, test_cameras: Cameras, *, view: Annotated
                              "image")
     one = Cameras(test_cameras.K[view], test_cameras.R[view], test_cameras.t[view], test_cameras.width,
                   test_cameras.height)
-    net = network_from(checkpoint, device)
     started = time.perf_counter()
-    image = _render_views(net, checkpoint, one, device)[0]
+    image = renderer.views(one)[0]
     seconds = time.perf_counter() - started
     origins, directions = cameras_rays(one, device=device)
     index = v * one.width + u
-    with torch.no_grad():
-        ray = render_rays(net, origins[0, index:index + 1], directions[0, index:index + 1], checkpoint.bounds,
-                          background=torch.as_tensor(checkpoint.background, device=device), jitter=False)
-    t = (ray.t_coarse if ray.t_fine is None else ray.t_fine)[0].cpu().numpy()
-    weights = Curve(t, ray.final.weights[0].cpu().numpy(), title=f"weights along the ray of pixel ({u}, {v})",
-                    xlabel="depth t", ylabel="w_i", labels=("w_i = T_i alpha_i",))
-    near, far = checkpoint.bounds.near, checkpoint.bounds.far
+    t, w = renderer.ray(origins[0, index:index + 1], directions[0, index:index + 1])
+    weights = Curve(t, w, title=f"weights along the ray of pixel ({u}, {v})", xlabel="depth t", ylabel="w_i",
+                    labels=("w_i = T_i alpha_i",))
+    near, far = renderer.model.bounds.near, renderer.model.bounds.far
     depth = np.clip((image.depth - near) / (far - near), 0.0, 1.0)
     return ViewResult(Image(image.color, name=f"held-out view {view}"), Image(depth, name="depth"),
                       Image(np.clip(image.opacity, 0.0, 1.0), name="opacity"), weights, seconds)
 
 
-__all__ = ["BACKGROUNDS", "PREVIEW_SIDE", "EncodingResult", "HeldOutResult", "RaysResult", "TrainResult",
-           "ViewResult", "encode_positions", "generate_rays", "render_held_out", "render_view", "train_nerf"]
+__all__ = ["BACKGROUNDS", "PREVIEW_SIDE", "EncodingResult", "FieldRenderer", "HeldOutResult", "RaysResult",
+           "TrainResult", "ViewResult", "encode_positions", "generate_rays", "render_held_out", "render_view",
+           "train_nerf"]

@@ -51,13 +51,15 @@ class PreviewRays:
 
 @dataclass(frozen=True, eq=False)
 class TrainingRun:
-    """A finished run: the network, every iteration's loss and PSNR (of the batch's final pass), the
-    training seconds (previews excluded)."""
+    """A finished run: the field (a :class:`~lab.modules.nerf.model.NerfMLP` or a grid), every iteration's
+    loss and PSNR (of the batch's final pass), the training seconds (previews excluded) and the samples per
+    ray evaluated with gradient over the last tenth of the run."""
 
-    net: NerfMLP
+    net: torch.nn.Module
     losses: np.ndarray
     psnrs: np.ndarray
     seconds: float
+    samples_per_ray: float
 
     @property
     def iterations(self) -> int:
@@ -117,7 +119,8 @@ def train_field(rays: RayBundle, config: FieldConfig, options: TrainingOptions, 
             yield Progress(iteration=done, total=options.iterations, loss=recent,
                            message=f"PSNR {np.mean(psnrs[-REPORT_EVERY:]):.2f} dB, {elapsed:.1f} s",
                            values=values)
-    return TrainingRun(net, np.asarray(losses), np.asarray(psnrs), elapsed)
+    return TrainingRun(net, np.asarray(losses), np.asarray(psnrs), elapsed,
+                       float(config.samples + config.fine_samples))
 
 
 def preview_image(net: NerfMLP, preview: PreviewRays, rays: RayBundle, background: torch.Tensor) -> Image:

@@ -1,0 +1,303 @@
+"""The accelerated variant: an explicit voxel grid of density and colour, trained coarse to fine, with an
+occupancy grid that skips empty space and early ray termination (issue 17 item 3).
+
+Plenoxels (Fridovich-Keil et al., CVPR 2022) and DVGO (Sun et al., CVPR 2022) showed that a radiance
+field needs no network: trilinearly interpolated values on a grid, rendered by the same volume rendering
+(:func:`~lab.modules.nerf.rendering.volume_render`), optimized directly with a high learning rate. Here:
+
+- one density and one RGB value per vertex of an ``R^3`` grid over the normalized scene box ``[-1, 1]^3``
+  (colour without view dependence: the lab's scenes are Lambertian), ``sigma = softplus(raw + shift)``
+  with a near-zero start (``shift`` = :data:`DENSITY_SHIFT`; DVGO's ``alpha_init`` of 1e-2 never empties
+  space on a CPU budget), colour ``sigmoid(raw)``;
+- trilinear interpolation as a weighted sum of the 8 corner rows (``embedding_bag`` with per-sample
+  weights without gradient, ``index_select`` with it; see :meth:`GridField.sample`) instead of
+  ``grid_sample``; the tables are updated by torch's fused Adam;
+- coarse to fine: the grid starts at ``R / 4`` and is upsampled (trilinearly) to ``R / 2`` and ``R`` at a
+  quarter and at half of the budget; the step along rays is half a voxel of the current grid;
+- empty-space skipping: samples in cells whose dilated density is below :data:`EMPTY_SIGMA` are not
+  evaluated (the occupancy grid is refreshed every :data:`OCCUPANCY_EVERY` iterations); early ray
+  termination: a first pass without gradient gives every sample's weight, and only samples of weight
+  >= :data:`SKIP_BELOW` (so none behind an opaque surface) are evaluated with gradient (DVGO's "fast
+  colour threshold").
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from collections.abc import Generator
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+
+from lab.core import Image, InvalidValue, Progress
+from lab.modules.nerf.evaluate import psnr_from_mse
+from lab.modules.nerf.model import ImageRendering
+from lab.modules.nerf.rendering import PackedRendering, volume_render_packed
+from lab.modules.nerf.training import REPORT_EVERY, PreviewRays, TrainingRun
+from lab.modules.nerf.values import RayBundle, SceneBounds
+
+#: ``sigma = softplus(raw + DENSITY_SHIFT)``; raw starts at 0, so sigma starts at about 0.0067.
+DENSITY_SHIFT = -5.0
+#: Iterations between two refreshes of the occupancy grid.
+OCCUPANCY_EVERY = 16
+#: Samples of a smaller weight are not evaluated with gradient (behind surfaces, or nearly empty).
+SKIP_BELOW = 1e-5
+#: Cells whose dilated density is below this are empty space (about 2 % absorbed across the whole scene
+#: box). Checked from the second refresh of each grid on: the start, softplus(-5), is below it.
+EMPTY_SIGMA = 1e-2
+
+_CORNERS = torch.tensor([[i, j, k] for i in (0, 1) for j in (0, 1) for k in (0, 1)])  # (8, 3)
+
+
+@dataclass(frozen=True, eq=False)
+class GridCheckpoint:
+    """A trained grid field: ``density`` ``(R, R, R)`` raw densities and ``color`` ``(R, R, R, 3)`` raw
+    colours on the vertices of the normalized box ``[-1, 1]^3`` of ``bounds`` (axis order x, y, z), the
+    ``background`` ``(3,)``."""
+
+    density: np.ndarray
+    color: np.ndarray
+    bounds: SceneBounds
+    background: np.ndarray
+
+    def __post_init__(self) -> None:
+        density = np.asarray(self.density, dtype=np.float32)
+        if density.ndim != 3 or len(set(density.shape)) != 1:
+            raise InvalidValue("model.density", f"expected an (R, R, R) grid, got {density.shape}")
+        object.__setattr__(self, "density", density)
+        object.__setattr__(self, "color", np.asarray(self.color, dtype=np.float32).reshape(*density.shape, 3))
+        object.__setattr__(self, "background", np.asarray(self.background, dtype=np.float32).reshape(3))
+
+    @property
+    def resolution(self) -> int:
+        return int(self.density.shape[0])
+
+
+class GridField(torch.nn.Module):
+    """Density and colour tables ``(R^3, 1)`` and ``(R^3, 3)`` (row ``(x R + y) R + z``), sampled
+    trilinearly at normalized points."""
+
+    def __init__(self, resolution: int, density: torch.Tensor | None = None,
+                 color: torch.Tensor | None = None) -> None:
+        super().__init__()
+        cells = resolution ** 3
+        self.resolution = resolution
+        density = torch.zeros(cells, 1) if density is None else density.reshape(cells, 1)
+        self.density = torch.nn.Parameter(density)
+        self.color = torch.nn.Parameter(torch.zeros(cells, 3) if color is None else color.reshape(cells, 3))
+
+    def corners(self, x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """The 8 corner rows ``(N, 8)`` of points ``x`` ``(N, 3)`` in ``[-1, 1]^3`` and their trilinear
+        weights ``(N, 8)``."""
+        r = self.resolution
+        g = (x + 1.0) * (0.5 * (r - 1))
+        base = torch.floor(g).clamp(0, r - 2)
+        f = g - base
+        corners = _CORNERS.to(x.device)
+        ijk = base.long()[:, None, :] + corners[None]                                   # (N, 8, 3)
+        rows = (ijk[..., 0] * r + ijk[..., 1]) * r + ijk[..., 2]
+        weights = torch.where(corners[None].bool(), f[:, None, :], 1.0 - f[:, None, :]).prod(dim=-1)
+        return rows, weights
+
+    def sample(self, table: torch.Tensor, rows: torch.Tensor, weights: torch.Tensor) -> torch.Tensor:
+        """``sum_c weights_c table[rows_c]`` ``(N, C)``: without gradient one gather-and-sum kernel
+        (``embedding_bag``); with gradient ``index_select``, whose backward is one ``index_add`` (the
+        backward of ``embedding_bag`` sorts the rows first: ten times slower on a CPU)."""
+        if not (torch.is_grad_enabled() and table.requires_grad):
+            return torch.nn.functional.embedding_bag(rows, table, per_sample_weights=weights, mode="sum")
+        gathered = table.index_select(0, rows.reshape(-1)).reshape(*rows.shape, table.shape[1])
+        return (gathered * weights[..., None]).sum(dim=-2)
+
+    def upsampled(self, resolution: int) -> GridField:
+        """This field trilinearly resampled on a finer grid (the same box)."""
+        def up(table: torch.Tensor, channels: int) -> torch.Tensor:
+            r = self.resolution
+            volume = table.detach().reshape(r, r, r, channels).permute(3, 0, 1, 2)[None]
+            fine = torch.nn.functional.interpolate(volume, size=(resolution,) * 3, mode="trilinear",
+                                                   align_corners=True)
+            return fine[0].permute(1, 2, 3, 0).reshape(-1, channels).contiguous()
+        return GridField(resolution, up(self.density, 1), up(self.color, 3)).to(self.density.device)
+
+    def occupancy(self) -> torch.Tensor:
+        """``(R, R, R)`` bool: vertices whose density, dilated over their neighbours, is at least
+        :data:`EMPTY_SIGMA`."""
+        r = self.resolution
+        with torch.no_grad():
+            sigma = torch.nn.functional.softplus(self.density.reshape(1, 1, r, r, r) + DENSITY_SHIFT)
+            return torch.nn.functional.max_pool3d(sigma, 3, stride=1, padding=1)[0, 0] >= EMPTY_SIGMA
+
+
+@dataclass(frozen=True)
+class GridOptions:
+    """See :func:`train_grid_field`."""
+
+    resolution: int
+    batch_rays: int
+    learning_rate: float
+    iterations: int
+    budget_seconds: float
+    preview_every: int
+
+
+def _candidates(origins: torch.Tensor, directions: torch.Tensor, bounds: SceneBounds, step: float,
+                occupied: torch.Tensor | None, jitter: torch.Tensor | None) -> tuple[torch.Tensor, ...]:
+    """The samples worth a look, packed ray after ray: every ``step`` (normalized units, so
+    ``step radius / |d|`` in depth) from near to far, shifted by ``jitter`` ``(R, 1)`` of a step (half a
+    step without), kept where they fall in an occupied cell of the box (``occupied`` ``(R, R, R)``; None:
+    the whole box). Returns the ray of each ``(K,)``, its depth ``(K,)``, normalized point ``(K, 3)`` and
+    interval length ``(K,)`` (a distance)."""
+    norm = directions.norm(dim=-1)
+    depth_step = step * bounds.radius / norm                                              # (R,)
+    count = math.ceil((bounds.far - bounds.near) / float(depth_step.min()))
+    offsets = torch.arange(count, dtype=origins.dtype, device=origins.device)[None]
+    offsets = offsets + (0.5 if jitter is None else jitter)
+    t = bounds.near + offsets * depth_step[:, None]                                      # (R, S)
+    centre = torch.as_tensor(bounds.center, dtype=origins.dtype, device=origins.device)
+    x = (origins[:, None, :] - centre + t[..., None] * directions[:, None, :]) / bounds.radius
+    if occupied is None:
+        occupied = torch.ones((2, 2, 2), dtype=torch.bool, device=origins.device)
+    r = occupied.shape[0]
+    padded = torch.nn.functional.pad(occupied, (1, 1, 1, 1, 1, 1))                       # outside: empty
+    cell = ((x + 1.0) * (0.5 * (r - 1))).round_().add_(1).clamp_(0, r + 1).long()
+    candidate = padded[cell[..., 0], cell[..., 1], cell[..., 2]] & (t < bounds.far)
+    ray, column = candidate.nonzero(as_tuple=True)
+    t_k = t[ray, column]
+    delta = torch.minimum(depth_step[ray], bounds.far - t_k) * norm[ray]
+    return ray, t_k, x[ray, column], delta
+
+
+def render_grid(field: GridField, origins: torch.Tensor, directions: torch.Tensor, bounds: SceneBounds, *,
+                step: float, background: torch.Tensor, occupied: torch.Tensor | None,
+                jitter: torch.Tensor | None = None) -> tuple[PackedRendering, torch.Tensor]:
+    """Render rays ``(R, 3)`` through the grid with empty-space skipping and early termination (the module
+    docstring). Returns the :class:`~lab.modules.nerf.rendering.PackedRendering` and the depths ``(K,)`` of
+    the samples evaluated with gradient (ray after ray)."""
+    rays = len(origins)
+    ray, t, x, delta = _candidates(origins, directions, bounds, step, occupied, jitter)
+    with torch.no_grad():  # pass 1: every candidate's weight, density only, no gradient
+        rows, weights = field.corners(x)
+        sigma = torch.nn.functional.softplus(field.sample(field.density, rows, weights)[:, 0] + DENSITY_SHIFT)
+        first = volume_render_packed(sigma, torch.zeros_like(x), t, delta, ray, rays, far=bounds.far)
+        keep = first.weights >= SKIP_BELOW
+    rows, weights = field.corners(x[keep])
+    sigma = torch.nn.functional.softplus(field.sample(field.density, rows, weights)[:, 0] + DENSITY_SHIFT)
+    rgb = torch.sigmoid(field.sample(field.color, rows, weights))
+    out = volume_render_packed(sigma, rgb, t[keep], delta[keep], ray[keep], rays, far=bounds.far,
+                               background=background)
+    return out, t[keep]
+
+
+def _adam(field: GridField, learning_rate: float) -> torch.optim.Adam:
+    """Adam on the grid; the fused CPU / CUDA kernel (one pass over the tables) where torch has it."""
+    try:
+        return torch.optim.Adam(field.parameters(), lr=learning_rate, fused=True)
+    except (RuntimeError, TypeError):
+        return torch.optim.Adam(field.parameters(), lr=learning_rate)
+
+
+def train_grid_field(rays: RayBundle, options: GridOptions, *, background: torch.Tensor,
+                     preview: PreviewRays | None, rng: np.random.Generator,
+                     device: str) -> Generator[Progress, None, TrainingRun]:
+    """Adam on the photometric loss of random ray batches, coarse to fine (the module docstring), the
+    learning rate decaying to a tenth over the budget. Yields progress every :data:`REPORT_EVERY`
+    iterations and a preview every ``preview_every``."""
+    generator = torch.Generator().manual_seed(int(rng.integers(0, 2**62)))
+    origins = torch.as_tensor(rays.origins, device=device)
+    directions = torch.as_tensor(rays.directions, device=device)
+    colors = torch.as_tensor(rays.colors, device=device)
+    stages = [max(4, options.resolution // 4), max(4, options.resolution // 2), options.resolution]
+    field = GridField(stages[0]).to(device)
+    optimizer = _adam(field, options.learning_rate)
+    losses: list[float] = []
+    psnrs: list[float] = []
+    evaluated: list[int] = []
+    elapsed, occupied = 0.0, None
+    budget = options.budget_seconds
+    while len(losses) < options.iterations and (budget <= 0 or elapsed < budget):
+        tick = time.perf_counter()
+        spent = len(losses) / options.iterations
+        if budget > 0:
+            spent = max(spent, elapsed / budget)
+        stage = 0 if spent < 0.25 else 1 if spent < 0.5 else 2
+        if field.resolution != stages[stage]:
+            field = field.upsampled(stages[stage])
+            optimizer = _adam(field, options.learning_rate)
+            occupied = field.occupancy()
+        if len(losses) % OCCUPANCY_EVERY == 0:
+            occupied = field.occupancy() if len(losses) >= OCCUPANCY_EVERY else None  # not before a warm-up
+        for group in optimizer.param_groups:
+            group["lr"] = options.learning_rate * 0.1 ** min(spent, 1.0)
+        batch = torch.randint(len(origins), (options.batch_rays,), generator=generator).to(device)
+        jitter = torch.rand((options.batch_rays, 1), generator=generator).to(device)
+        out, kept = render_grid(field, origins[batch], directions[batch], rays.bounds, step=grid_step(field),
+                                 background=background, occupied=occupied, jitter=jitter)
+        mse = torch.mean((out.color - colors[batch]) ** 2)
+        optimizer.zero_grad(set_to_none=True)
+        mse.backward()
+        optimizer.step()
+        losses.append(float(mse.detach()))
+        psnrs.append(psnr_from_mse(losses[-1]))
+        evaluated.append(len(kept))
+        elapsed += time.perf_counter() - tick
+        done = len(losses)
+        last = done == options.iterations or 0 < budget <= elapsed
+        if done % REPORT_EVERY == 0 or last:
+            values = {}
+            if preview is not None and (done % options.preview_every == 0 or last):
+                image = render_grid_image(field, preview.origins, preview.directions, rays.bounds,
+                                          preview.shape, background=background)
+                values["preview"] = Image(image.color, name="training preview")
+            per_ray = np.mean(evaluated[-REPORT_EVERY:]) / options.batch_rays
+            psnr = np.mean(psnrs[-REPORT_EVERY:])
+            recent = float(np.mean(losses[-REPORT_EVERY:]))
+            yield Progress(iteration=done, total=options.iterations, loss=recent, values=values,
+                           message=f"grid {field.resolution}^3, PSNR {psnr:.2f} dB, "
+                                   f"{per_ray:.1f} samples/ray, {elapsed:.1f} s")
+    tail = evaluated[-max(1, len(evaluated) // 10):]
+    return TrainingRun(field, np.asarray(losses), np.asarray(psnrs), elapsed,
+                       float(np.mean(tail)) / options.batch_rays)
+
+
+def grid_step(field: GridField) -> float:
+    """The sampling step along rays: half a voxel (voxels are ``2 / (R - 1)`` wide in normalized units)."""
+    return 1.0 / (field.resolution - 1)
+
+
+def render_grid_image(field: GridField, origins: torch.Tensor, directions: torch.Tensor, bounds: SceneBounds,
+                      shape: tuple[int, int], *, background: torch.Tensor,
+                      chunk: int = 4096) -> ImageRendering:
+    """Render one view's rays ``(H * W, 3)`` (row-major) through the grid, no jitter, no gradient, with the
+    field's occupancy; :class:`~lab.modules.nerf.model.ImageRendering` of ``shape = (H, W)``."""
+    colors, depths, opacities = [], [], []
+    with torch.no_grad():
+        occupied = field.occupancy()
+        for start in range(0, len(origins), chunk):
+            out, _ = render_grid(field, origins[start:start + chunk], directions[start:start + chunk], bounds,
+                                 step=grid_step(field), background=background, occupied=occupied)
+            colors.append(out.color)
+            depths.append(out.depth)
+            opacities.append(out.opacity)
+    height, width = shape
+    return ImageRendering(torch.cat(colors).clamp(0, 1).reshape(height, width, 3).cpu().numpy(),
+                          torch.cat(depths).reshape(height, width).cpu().numpy(),
+                          torch.cat(opacities).reshape(height, width).cpu().numpy())
+
+
+def grid_checkpoint_from(field: GridField, bounds: SceneBounds, background: np.ndarray) -> GridCheckpoint:
+    """A :class:`GridCheckpoint` of the field's tables (copied to the CPU)."""
+    r = field.resolution
+    return GridCheckpoint(field.density.detach().cpu().numpy().reshape(r, r, r),
+                          field.color.detach().cpu().numpy().reshape(r, r, r, 3), bounds, background)
+
+
+def grid_from(checkpoint: GridCheckpoint, device: str = "cpu") -> GridField:
+    """The :class:`GridField` of a checkpoint on ``device``."""
+    return GridField(checkpoint.resolution, torch.as_tensor(checkpoint.density),
+                     torch.as_tensor(checkpoint.color)).to(device)
+
+
+__all__ = ["DENSITY_SHIFT", "EMPTY_SIGMA", "OCCUPANCY_EVERY", "SKIP_BELOW", "GridCheckpoint", "GridField",
+           "GridOptions", "grid_checkpoint_from", "grid_from", "grid_step", "render_grid",
+           "render_grid_image", "train_grid_field"]

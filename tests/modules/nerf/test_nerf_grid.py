@@ -1,0 +1,113 @@
+"""lab.modules.nerf's accelerated variant: packed rendering against the dense one, the grid's trilinear
+interpolation against known answers, occupancy, and a tiny grid training run through the steps."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+
+from lab.core import open_session
+from lab.modules import nerf as N
+from lab.modules.nerf import PIPELINE
+
+torch.set_num_threads(1)
+
+
+def test_packed_rendering_matches_dense_rendering_with_empty_samples_left_out():
+    rng = np.random.default_rng(0)
+    rays, samples = 12, 20
+    t = torch.as_tensor(np.sort(rng.uniform(2.0, 6.0, (rays, samples)), axis=1))
+    sigma = torch.as_tensor(rng.exponential(1.5, (rays, samples)))
+    keep = torch.as_tensor(rng.uniform(0, 1, (rays, samples)) < 0.6)
+    keep[4] = False  # a ray with no sample left: the background shows
+    sigma = torch.where(keep, sigma, 0.0)
+    rgb = torch.as_tensor(rng.uniform(0, 1, (rays, samples, 3)))
+    norm = torch.as_tensor(rng.uniform(0.9, 1.3, rays))
+    background = torch.tensor([1.0, 0.5, 0.25], dtype=torch.float64)
+    dense = N.volume_render(sigma, rgb, t, far=6.0, direction_norm=norm, background=background)
+    delta = N.interval_lengths(t, 6.0, norm)
+    ray, _ = keep.nonzero(as_tuple=True)
+    packed = N.volume_render_packed(sigma[keep], rgb[keep], t[keep], delta[keep], ray, rays, far=6.0,
+                                    background=background)
+    np.testing.assert_allclose(packed.color.numpy(), dense.color.numpy(), rtol=1e-10)
+    np.testing.assert_allclose(packed.opacity.numpy(), dense.opacity.numpy(), rtol=1e-10, atol=1e-15)
+    np.testing.assert_allclose(packed.depth.numpy(), dense.depth.numpy(), rtol=1e-10)
+    np.testing.assert_allclose(packed.weights.numpy(), dense.weights[keep].numpy(), rtol=1e-10)
+    np.testing.assert_allclose(packed.color[4].numpy(), background.numpy())
+
+
+def _linear_field(resolution: int) -> tuple[N.GridField, np.ndarray]:
+    """A grid whose vertex values are ``a . x + b`` (trilinear interpolation reproduces it exactly)."""
+    a = np.array([0.3, -0.7, 1.1])
+    axis = np.linspace(-1.0, 1.0, resolution)
+    x, y, z = np.meshgrid(axis, axis, axis, indexing="ij")
+    values = torch.as_tensor(a[0] * x + a[1] * y + a[2] * z + 0.2, dtype=torch.float32)
+    return N.GridField(resolution, values, torch.stack([values] * 3, dim=-1)), a
+
+
+def test_trilinear_interpolation_reproduces_a_linear_function_on_both_paths():
+    field, a = _linear_field(9)
+    points = torch.as_tensor(np.random.default_rng(1).uniform(-1, 1, (200, 3)), dtype=torch.float32)
+    expected = points.double().numpy() @ a + 0.2
+    rows, weights = field.corners(points)
+    np.testing.assert_allclose(weights.sum(dim=1).numpy(), 1.0, atol=1e-6)
+    with torch.no_grad():  # embedding_bag
+        got = field.sample(field.density, rows, weights)[:, 0]
+        np.testing.assert_allclose(got.numpy(), expected, atol=1e-5)
+    with_grad = field.sample(field.color, rows, weights)  # index_select, and its gradient
+    np.testing.assert_allclose(with_grad[:, 1].detach().numpy(), expected, atol=1e-5)
+    with_grad.sum().backward()
+    assert field.color.grad is not None and float(field.color.grad.sum()) == pytest.approx(600.0, rel=1e-5)
+    finer = field.upsampled(17)
+    rows, weights = finer.corners(points)
+    with torch.no_grad():
+        got = finer.sample(finer.density, rows, weights)[:, 0]
+        np.testing.assert_allclose(got.numpy(), expected, atol=1e-5)
+
+
+def test_occupancy_marks_dense_cells_and_their_neighbours_only():
+    field = N.GridField(8, torch.full((8, 8, 8), -20.0))
+    with torch.no_grad():
+        field.density.view(8, 8, 8)[3, 4, 5] = 10.0
+    occupied = field.occupancy()
+    assert occupied[2:5, 3:6, 4:7].all() and int(occupied.sum()) == 27
+
+
+def test_grid_skips_empty_space_and_stops_behind_a_wall():
+    """An opaque slab at x in [0, 0.25] of the box: rays along +x evaluate only samples near it, see it."""
+    r = 17
+    raw = torch.full((r, r, r), -20.0)
+    raw[8:11] = 60.0  # vertices at x = 0, 0.125, 0.25: sigma = 55
+    field = N.GridField(r, raw, torch.zeros(r, r, r, 3))
+    bounds = N.SceneBounds(1.0, 3.0, np.zeros(3), 1.0)
+    origins = torch.tensor([[-2.0, 0.1 * k - 0.3, 0.05] for k in range(7)])
+    directions = torch.tensor([[1.0, 0.0, 0.0]] * 7)
+    with torch.no_grad():
+        out, t = N.render_grid(field, origins, directions, bounds, step=1.0 / (r - 1),
+                               background=torch.ones(3), occupied=field.occupancy())
+    # what early termination drops (samples of weight < SKIP_BELOW) is below 1e-4 in all
+    np.testing.assert_allclose(out.opacity.numpy(), 1.0, atol=1e-4)
+    np.testing.assert_allclose(out.color.numpy(), 0.5, atol=1e-4)  # sigmoid(0)
+    np.testing.assert_allclose(out.depth.numpy(), 1.94, atol=0.07)  # the wall's face at x = -0.06 .. 0
+    # of the 32 steps from near to far, 5 per ray are evaluated: at the face (empty cells skipped before it,
+    # the rest terminated behind it)
+    assert len(t) == 7 * 5 and float(t.min()) > 1.85 and float(t.max()) < 2.2
+
+
+def test_a_tiny_grid_run_through_the_steps():
+    session = open_session(PIPELINE, "synthetic_object", {"train_views": 3, "test_views": 1}, seed=1)
+    session.run("generate_rays")
+    session.run("encode_positions")
+    record = session.run("train_nerf", {"method": "grid", "grid_resolution": 24, "batch_rays": 512,
+                                        "iterations": 40, "preview_every": 20})
+    assert record.status == "ok", record.error
+    model = session.state["model"]
+    assert isinstance(model, N.GridCheckpoint) and model.resolution == 24
+    curve = session.state["loss_curve"].y[0]
+    assert curve[-1] < 0.5 * curve[0]
+    assert 0 < record.metrics["samples_per_ray"] < 40
+    held = session.run("render_held_out")
+    assert held.status == "ok" and held.metrics["psnr"] > 12
+    view = session.run("render_view")
+    assert view.status == "ok" and session.state["rendered"].pixels.shape == (100, 100, 3)
