@@ -1,0 +1,113 @@
+"""NeRF on a CPU: the accelerated grid variant against the vanilla NeRF MLP, at the same wall-clock budgets.
+
+Protocol (issue 17 item 7): the synthetic 100 x 100 object scene (``synthetic_object``: 40 training and 8
+held-out views on white), or with ``--scene PATH`` a folder in the NeRF-synthetic layout (shrunk to
+100 px); every configuration trains through the pipeline's own steps (``generate_rays``,
+``encode_positions``, ``train_nerf`` with ``budget_seconds``, ``render_held_out``) on this machine, then
+renders one 200 x 200 view (held-out camera 0 at twice the resolution) for the render time. The training
+clock counts optimizer steps only (previews are off), so budgets are comparable; on a machine shared with
+other jobs every number in seconds is pessimistic.
+
+Configurations: ``fast`` (method grid: 96^3 finest grid, 2048 rays a batch, learning rate 0.6);
+``vanilla`` (the classic course project's NeRF: 6 frequencies, 32 samples per ray, a 4 x 64 MLP, 4096 rays
+a batch, learning rate 5e-3); ``vanilla_small_batch`` (the same with 1024 rays a batch).
+
+Keys of the last line ``RESULT {json}``: ``psnr_<config>_<budget>s``, ``ssim_<config>_<budget>s``,
+``iterations_<config>_<budget>s``, ``rays_per_second_<config>_<budget>s``,
+``samples_per_ray_<config>_<budget>s``; ``render_seconds_200_<config>`` (from the longest budget's model);
+``psnr_fast_minus_vanilla_<budget>s``; ``render_speedup_200`` (vanilla's render time over fast's);
+``psnr_sfm_poses_minus_true`` (null: the SfM chain, issue 17 item 4d, is not built yet); ``scene``,
+``torch_threads``, ``load_average`` (the 1-minute load when the run ended).
+
+    python3 benchmarks/bench_nerf.py                       # budgets 10 s and 120 s, every configuration
+    python3 benchmarks/bench_nerf.py --budgets 10 --configs fast
+    python3 benchmarks/bench_nerf.py --scene ~/data/nerf_synthetic/lego
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import time
+
+import torch
+
+from lab.core import open_session
+from lab.modules.nerf import PIPELINE, FieldRenderer, scaled_cameras
+
+CONFIGS = {
+    "fast": {"method": "grid", "grid_resolution": 96, "batch_rays": 2048, "grid_learning_rate": 0.6},
+    "vanilla": {"method": "mlp", "samples": 32, "hidden": 64, "layers": 4, "batch_rays": 4096,
+                "learning_rate": 5e-3},
+    "vanilla_small_batch": {"method": "mlp", "samples": 32, "hidden": 64, "layers": 4, "batch_rays": 1024,
+                            "learning_rate": 5e-3},
+}
+
+
+def run_config(session_args: tuple, controls: dict, budget: float) -> dict:
+    """Train one configuration for ``budget`` seconds and evaluate it; returns its numbers and model."""
+    session = open_session(*session_args[:2], session_args[2], seed=0)
+    session.run("generate_rays")
+    session.run("encode_positions")
+    train = session.run("train_nerf", {**controls, "budget_seconds": budget, "iterations": 1_000_000,
+                                       "preview_every": 100_000})
+    if train.status != "ok":
+        raise SystemExit(f"train_nerf failed: {train.error}")
+    held = session.run("render_held_out")
+    numbers = {key: held.metrics[key] for key in ("psnr", "ssim")}
+    numbers.update({key: train.metrics[key] for key in ("iterations", "rays_per_second", "samples_per_ray")})
+    return {**numbers, "model": session.state["model"], "test_cameras": session.state["test_cameras"]}
+
+
+def render_seconds_200(model, test_cameras) -> float:
+    """Seconds to render held-out camera 0 at 200 x 200 (twice the 100 px training resolution)."""
+    first = scaled_cameras(test_cameras, 200 / test_cameras.width)
+    renderer = FieldRenderer(model, "cpu")
+    started = time.perf_counter()
+    renderer.views(type(first)(first.K[:1], first.R[:1], first.t[:1], first.width, first.height))
+    return time.perf_counter() - started
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("--budgets", default="10,120", help="training budgets in seconds, comma-separated")
+    parser.add_argument("--configs", default=",".join(CONFIGS), help=f"of {', '.join(CONFIGS)}")
+    parser.add_argument("--scene", default="", help="a NeRF-synthetic folder (default: the synthetic object)")
+    parser.add_argument("--threads", type=int, default=1, help="torch CPU threads (the machine is shared)")
+    args = parser.parse_args()
+    torch.set_num_threads(args.threads)
+    budgets = [float(b) for b in args.budgets.split(",")]
+    if args.scene:
+        session_args = (PIPELINE, "nerf_synthetic", {"path": args.scene, "downscale": 8})
+    else:
+        session_args = (PIPELINE, "synthetic_object", {"train_views": 40, "test_views": 8})
+    result: dict = {"scene": args.scene or "synthetic_object", "torch_threads": args.threads}
+    renders: dict[str, float] = {}
+    for name in args.configs.split(","):
+        for budget in budgets:
+            numbers = run_config(session_args, CONFIGS[name], budget)
+            tag = f"{name}_{budget:g}s"
+            for key in ("psnr", "ssim", "iterations", "rays_per_second", "samples_per_ray"):
+                result[f"{key}_{tag}"] = numbers[key]
+            print(f"{tag}: held-out PSNR {numbers['psnr']:.2f} dB, SSIM {numbers['ssim']:.3f}, "
+                  f"{numbers['iterations']} iterations, {numbers['rays_per_second']:.0f} rays/s, "
+                  f"{numbers['samples_per_ray']:.1f} samples/ray", flush=True)
+            if budget == max(budgets):
+                renders[name] = render_seconds_200(numbers["model"], numbers["test_cameras"])
+                result[f"render_seconds_200_{name}"] = renders[name]
+                print(f"{name}: 200 x 200 view in {renders[name]:.2f} s", flush=True)
+    for budget in budgets:
+        fast, vanilla = result.get(f"psnr_fast_{budget:g}s"), result.get(f"psnr_vanilla_{budget:g}s")
+        if fast is not None and vanilla is not None:
+            result[f"psnr_fast_minus_vanilla_{budget:g}s"] = fast - vanilla
+    if "fast" in renders and "vanilla" in renders:
+        result["render_speedup_200"] = renders["vanilla"] / renders["fast"]
+    result["psnr_sfm_poses_minus_true"] = None
+    result["load_average"] = os.getloadavg()[0]
+    rounded = {k: round(v, 4) if isinstance(v, float) else v for k, v in result.items()}
+    print("RESULT " + json.dumps(rounded))
+
+
+if __name__ == "__main__":
+    main()
