@@ -700,9 +700,12 @@ def held_during_plan(session: Session, drawn: Mapping[str, Any], state: Mapping[
 
 
 def _producers(session: Session, state: Mapping[str, Any]) -> dict[str, str]:
-    """The step that wrote each state value (the legend names it), "" for the dataset's."""
+    """The step whose run wrote each state value (the legend names it), "dataset" for the dataset's: of the
+    steps that write the name, the last that ran (``Session.ran_with``: a later stage rewrites an earlier
+    one's SfM ``cameras``, and a re-run upstream drops the later runs), else the first that writes it."""
     found = {}
     for name in state:
-        spec = session.pipeline.producer(name)
-        found[name] = spec.name if spec is not None else "dataset"
+        writers = [spec.name for spec in session.pipeline.steps if name in spec.writes]
+        ran = [step for step in writers if step in session.ran_with]
+        found[name] = ran[-1] if ran else writers[0] if writers else "dataset"
     return found

@@ -234,6 +234,16 @@ def test_a_done_step_stays_done_while_a_later_step_rewrites_a_name_it_shares(ser
     np.testing.assert_array_equal(view.scene.get_handle_by_name("/lab/shown").points, np.ones((2, 3)))
 
 
+def test_the_legend_names_the_step_that_wrote_a_shared_value_last(server, store):
+    view = make_view(server, store, {"shared": SHARED})
+    VIEW[:] = [view]
+    view.run("reconstruct")
+    assert "(reconstruct)" in view.scene_panel.legend.content
+    view.run_all()
+    legend = view.scene_panel.legend.content
+    assert "(adjust)" in legend and "(reconstruct)" not in legend  # adjust's `shown` is drawn now
+
+
 def test_once_the_plan_ends_the_label_says_what_the_session_has(server, store):
     view = make_view(server, store, {"shared": SHARED})
     VIEW[:] = [view]
