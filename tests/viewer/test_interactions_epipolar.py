@@ -291,6 +291,7 @@ def test_the_interactions_are_built_with_the_truth_before_any_step(view):
 def test_click_a_pixel_shows_its_epipolar_line_and_ray(view):
     explorer, _, _ = parts(view)
     view.run("refine_points", until=True)
+    assert [e.name for e in explorer.legend()] == ["explorer cameras", "3D point"]  # a point, no pick yet
     assert view.errors == [] and explorer.geometry.f_source.startswith("the session")
     truth, state = view.session.truth, view.session.state
     inliers = np.flatnonzero(state["inliers"] & ~truth["outliers"])

@@ -323,6 +323,8 @@ def test_click_a_pixel_shows_every_cost_with_its_minimum_and_the_truth(view):
     costs.x_input.value = 70
     assert costs.curves.pixel == (70, 20)
     assert costs.bounds() is not None and costs.bounds()[1, 0] >= 0.3  # both cameras framed
+    # the legend says what the rig and the pick are
+    assert [e.name for e in costs.legend()] == ["stereo rig", "picked pixel"]
 
 
 def test_a_click_on_the_left_image_plane_in_the_scene_picks_that_pixel(view):

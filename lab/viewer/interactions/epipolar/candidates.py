@@ -253,7 +253,7 @@ class PoseCandidates(Interaction):
                 + (" ✓ passes" if i == a.chosen else ""))
         above = tuple(offset + np.array([0.0, -0.3 * spacing, 0.0]))  # up is -y
         self.nodes.put(f"{base}/label", lambda: scene.add_label(node("candidates", str(i), "label"), text,
-                                                                position=above))
+                                                                position=above, anchor="bottom-center"))
 
     def scene_nodes(self) -> list[str]:
         with self.lock:

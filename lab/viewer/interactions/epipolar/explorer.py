@@ -21,7 +21,7 @@ from lab.core.errors import LabError, MissingInput
 from lab.core.values import ImageSet
 from lab.geometry.camera_views import camera_centre, click_to_pixel, image_placement, lift_pixels
 from lab.viewer.drawing import draw_overlays, frustum_segments
-from lab.viewer.interactions import Interaction, InteractionContext, NamedHandles
+from lab.viewer.interactions import Interaction, InteractionContext, LegendEntry, NamedHandles, Swatch
 from lab.viewer.interactions.epipolar.geometry import (GEOMETRY_READS, PICK_COLOR, POINT_COLOR, PixelPick,
                                                        PointMove, TwoViewGeometry, explorer_overlays, move,
                                                        observed_pairs, pick, scene_depths, two_view_geometry)
@@ -109,6 +109,22 @@ class EpipolarExplorer(Interaction):
         """Names of the scene nodes drawn now."""
         with self.lock:
             return self.nodes.names()
+
+    def legend(self) -> list[LegendEntry]:
+        """The two cameras with their image planes, and the pick and the point when there are some."""
+        with self.lock:
+            if self.geometry is None or not self.nodes.names():
+                return []
+            rig = (Swatch(CAMERA_COLORS[0], "camera 1"), Swatch(CAMERA_COLORS[1], "camera 2"))
+            entries = [LegendEntry("explorer cameras", "cameras", 2, rig,
+                                   "each with its image as a plane: click one to pick a pixel")]
+            if self.last_pick is not None:
+                entries.append(LegendEntry("picked pixel", "ray", 1, (Swatch(
+                    PICK_COLOR, "its ray, epipolar plane and epipolar line in the other image"),)))
+            if self.last_point is not None:
+                entries.append(LegendEntry("3D point", "point", 1, (Swatch(
+                    POINT_COLOR, "its rays to both cameras, its epipolar plane and lines (drag it)"),)))
+            return entries
 
     def bounds(self) -> np.ndarray | None:
         """``(2, 3)`` min and max corner of what the explorer draws (both cameras, the ray, the point), or

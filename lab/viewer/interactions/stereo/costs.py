@@ -24,7 +24,7 @@ from lab.core.values import Image, Points2D
 from lab.geometry.camera_views import click_to_pixel, image_placement, lift_pixels
 from lab.modules.stereo import COSTS, cost_curves
 from lab.viewer.drawing import draw_overlays, frustum_segments
-from lab.viewer.interactions import Interaction, InteractionContext, NamedHandles
+from lab.viewer.interactions import Interaction, InteractionContext, LegendEntry, NamedHandles, Swatch
 from lab.viewer.interactions.stereo.maps import truth_disparity
 from lab.viewer.renderers import FRUSTUM_MAX_SIDE, overlay_view
 
@@ -314,6 +314,20 @@ class CostCurveExplorer(Interaction):
             if self.curves is None:
                 return None
             return cost_plot(self.curves, session_cost=self._session_cost())
+
+    def legend(self) -> list[LegendEntry]:
+        """The rig (baseline, the left image as a clickable plane) and the picked pixel's ray."""
+        with self.lock:
+            if self.K is None or self.left is None:
+                return []
+            rig = (Swatch(BASELINE_COLOR, f"the baseline B = {self.baseline or 0.0:.3g} m"),
+                   Swatch(CAMERA_COLORS[0], "left camera"), Swatch(CAMERA_COLORS[1], "right camera"))
+            entries = [LegendEntry("stereo rig", "cameras", 2, rig,
+                                   "the left image as a plane in front of its camera: click a pixel")]
+            if self.curves is not None:
+                entries.append(LegendEntry("picked pixel", "ray", 1, (Swatch(
+                    PICK_COLOR, "its ray to the depth of its disparity, and the point there"),)))
+            return entries
 
     def bounds(self) -> np.ndarray | None:
         with self.lock:
