@@ -571,7 +571,7 @@ class ClientView:
             self.tab.media_panel.visible = any(not r.in_scene for r in map(renderer_for, state.values())
                                                if r is not None)
             self.camera.frame(state, self.interactions)
-            self.scene_panel.show(drawn, _producers(session, drawn))
+            self.scene_panel.show(drawn, _producers(session, drawn), self.interactions)
 
     def _pixel_clicked(self, image_name: str, view: int, pixel: np.ndarray) -> bool:
         """A click on a frustum's picture: the first interaction that takes the pixel gets it."""

@@ -123,6 +123,11 @@ def test_pick_a_point_shows_its_track(view, reconstructed):
     colors = part.draw_errors()
     assert colors.shape == (len(model.points), 3)
     assert "errors" in part.scene_nodes()
+    legend = {e.name: e for e in part.legend()}
+    assert set(legend) == {"points by error", "picked track"}
+    assert legend["points by error"].count == len(model.points)
+    green, red = legend["picked track"].swatches
+    assert green.color[1] > 150 and red.color[0] > 200 and green.marks == "0 px"
 
 
 def test_survives_a_reset_and_reports_bad_picks(view, reconstructed):

@@ -27,7 +27,7 @@ import numpy as np
 from lab.core import InvalidValue, MissingInput
 from lab.data.reconstruction import SparseModel
 from lab.modules.sfm import error_colors
-from lab.viewer.interactions import Interaction, InteractionContext
+from lab.viewer.interactions import Interaction, InteractionContext, LegendEntry, Swatch
 
 #: The model stages the interaction reads (in the SfM pipeline's ``views``), the most refined first.
 MODEL_VIEWS = ("adjusted_model", "filtered_model", "model")
@@ -154,6 +154,21 @@ class TrackExplorer(Interaction):
 
     def scene_nodes(self) -> list[str]:
         return sorted(self.nodes)
+
+    def legend(self) -> list[LegendEntry]:
+        """The cloud by reprojection error and the picked point's track, when drawn."""
+        scale = float(self.scale.value)
+        ends = (np.clip(error_colors(np.array([0.0, scale]), scale), 0, 1) * 255 + 0.5).astype(int)
+        green, red = ((int(r), int(g), int(b)) for r, g, b in ends)
+        by_error = (Swatch(green, "0 px"), Swatch(red, f"{scale:g} px or more (slider)"))
+        entries = []
+        if "errors" in self.nodes and self.model is not None:
+            entries.append(LegendEntry("points by error", "points", len(self.model.points), by_error,
+                                       "each point's mean reprojection error, green to red"))
+        if "track" in self.nodes:
+            entries.append(LegendEntry("picked track", "rays", len(self.picked), by_error,
+                                       "a ray from each camera that sees the yellow point, by its error"))
+        return entries
 
     # --- the viewer's hooks -------------------------------------------------------------------------
     def update(self, state: Mapping[str, Any]) -> None:
