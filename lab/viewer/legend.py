@@ -121,7 +121,8 @@ def legend_entries(state: Mapping[str, Any], names: Iterable[str] | None = None)
 class Explains(Protocol):
     """What draws in 3D and says what its drawing means: a module's interaction (``Interaction.legend``)."""
 
-    title: str
+    @property
+    def title(self) -> str: ...
 
     def legend(self) -> list[LegendEntry]: ...
 

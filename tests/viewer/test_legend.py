@@ -55,13 +55,16 @@ def test_the_viewer_shows_the_legend_after_a_run_and_fit_view_frames_the_scene(s
     view = ClientView(server, store, ModuleCatalog({"epipolar": get_pipeline("epipolar")}), is_client=False,
                       background=False)
     view.start({})
-    assert "Nothing drawn in 3D yet" in view.scene_panel.legend.content
+    # before any step: what the interactions draw from the truth (the rig, the candidates), with their titles
+    before = view.scene_panel.legend.content
+    assert "<b>explorer cameras</b>" in before and "(Epipolar explorer" in before
+    assert "<b>cameras</b>" not in before  # no state value drawn yet
     assert view.how_to.label == "How to use this"
     view.run_all()
     content = view.scene_panel.legend.content
     drawn = [e.name for e in legend_entries(dict(view.session.state))]
     assert drawn and all(f"<b>{name}</b>" in content for name in drawn)
-    assert "cameras" in content and "points" in content
+    assert "cameras" in content and "points" in content and "<b>pose candidates</b>" in content
     view.fit_view()  # a server-side view has no client camera: it must not fail
 
 
