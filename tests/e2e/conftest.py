@@ -1,6 +1,8 @@
 """Helpers shared by the e2e tests of module interactions: read what a viewer page shows and drive its GUI.
 
-The lab server and the browser are the fixtures of ``test_browser.py``. Here: :class:`ViewerPage`
+The lab server and the browser are the fixtures of ``test_browser.py`` (one per test);
+``served_lab`` and ``shared_browser`` are the same, one per test module (the server's log must then
+hold no traceback). :func:`unfold` opens a GUI folder by its title as a user does. Here: :class:`ViewerPage`
 (fixture ``viewer_page``) wraps a Playwright page open on the viewer. It finds an interaction's
 GUI folder by its title, types into the number box beside a labelled slider or vector, picks a
 dropdown option, and reads the 3D scene as the page holds it through viser's end-to-end test hook
@@ -11,6 +13,7 @@ dropdown option, and reads the 3D scene as the page holds it through viser's end
 
 from __future__ import annotations
 
+import os
 import time
 from typing import Any
 from collections.abc import Callable
@@ -19,6 +22,7 @@ import cv2
 import httpx
 import numpy as np
 import pytest
+from test_browser import CHROMIUM, CHROMIUM_ARGS, _serve, free_port
 
 #: How long a page element or scene node may take to appear (ms). Generous: the machine is shared.
 WAIT_MS = 60_000
@@ -198,3 +202,44 @@ class LabAPI:
 def lab_api(lab_server) -> LabAPI:
     """The REST API of the test's lab server (``lab_server`` of ``test_browser.py``)."""
     return LabAPI(lab_server[0])
+
+
+def unfold(page: Any, label: Any, inside: str) -> Any:
+    """The GUI folder whose title matches ``label`` (text or pattern), unfolded by a click on its title (again
+    if the GUI was redrawn meanwhile) until ``inside`` (a locator in the folder) is visible; returns that
+    locator (still hidden after five tries: the caller's wait or assertion reports it)."""
+    title = page.get_by_text(label).first
+    target = title.locator("xpath=..").locator(inside).first
+    for _ in range(5):
+        if target.is_visible():
+            break
+        title.click()
+        try:
+            target.wait_for(state="visible", timeout=3000)
+        except Exception:  # folded again or redrawn: try once more
+            continue
+    return target
+
+
+@pytest.fixture(scope="module")
+def served_lab(tmp_path_factory):
+    """The lab served as a user starts it, one for the test module; yields (api_url, viewer_url). Its log
+    must hold no traceback (checked when the module's tests are done)."""
+    log_path = tmp_path_factory.mktemp("lab-server") / "server.log"
+    with open(log_path, "w") as log:
+        yield from _serve(free_port(), free_port(), dict(os.environ, PYTHONUNBUFFERED="1"), log)
+    text = log_path.read_text()
+    assert "Traceback" not in text, text[-3000:]
+
+
+@pytest.fixture(scope="module")
+def shared_browser():
+    """Headless Debian chromium, one for the test module."""
+    from playwright.sync_api import sync_playwright
+
+    with sync_playwright() as playwright:
+        browser = playwright.chromium.launch(executable_path=CHROMIUM, args=CHROMIUM_ARGS)
+        try:
+            yield browser
+        finally:
+            browser.close()
