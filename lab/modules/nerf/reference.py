@@ -3,14 +3,17 @@
 Each ``x_reference`` computes what the public vectorized torch function ``x`` computes, in NumPy and
 plain Python loops (one camera, ray, sample or frequency at a time), slowly, in float64, written as the
 paper writes it (Mildenhall et al. 2020): products where the fast code uses sums of logarithms,
-explicit searches where it uses ``searchsorted``.
+explicit searches where it uses ``searchsorted``. ``grid_candidates_reference`` is the direct version of
+the grid's two-level search (dense torch arrays: every step of every ray).
 """
 
 from __future__ import annotations
 
 import math
+from typing import Any
 
 import numpy as np
+import torch
 
 
 def camera_rays_reference(K: np.ndarray, R: np.ndarray, t: np.ndarray,
@@ -106,5 +109,29 @@ def sample_pdf_reference(edges: np.ndarray, weights: np.ndarray, u: np.ndarray,
     return out
 
 
-__all__ = ["camera_rays_reference", "positional_encoding_reference", "sample_pdf_reference",
-           "stratified_samples_reference", "volume_render_reference"]
+def grid_candidates_reference(origins: torch.Tensor, directions: torch.Tensor, bounds: Any, step: float,
+                occupied: torch.Tensor | None, jitter: torch.Tensor | None) -> tuple[torch.Tensor, ...]:
+    """:func:`~lab.modules.nerf.grid.grid_candidates` the direct way: make every step of every ray, look up
+    the occupancy at each, keep those that are occupied (torch, dense ``(R, S)`` arrays)."""
+    norm = directions.norm(dim=-1)
+    depth_step = step * bounds.radius / norm                                              # (R,)
+    count = math.ceil((bounds.far - bounds.near) / float(depth_step.min()))
+    offsets = torch.arange(count, dtype=origins.dtype, device=origins.device)[None]
+    offsets = offsets + (0.5 if jitter is None else jitter)
+    t = bounds.near + offsets * depth_step[:, None]                                      # (R, S)
+    centre = torch.as_tensor(bounds.center, dtype=origins.dtype, device=origins.device)
+    x = (origins[:, None, :] - centre + t[..., None] * directions[:, None, :]) / bounds.radius
+    if occupied is None:
+        occupied = torch.ones((2, 2, 2), dtype=torch.bool, device=origins.device)
+    r = occupied.shape[0]
+    padded = torch.nn.functional.pad(occupied, (1, 1, 1, 1, 1, 1))                       # outside: empty
+    cell = ((x + 1.0) * (0.5 * (r - 1))).round_().add_(1).clamp_(0, r + 1).long()
+    candidate = padded[cell[..., 0], cell[..., 1], cell[..., 2]] & (t < bounds.far)
+    ray, column = candidate.nonzero(as_tuple=True)
+    t_k = t[ray, column]
+    delta = torch.minimum(depth_step[ray], bounds.far - t_k) * norm[ray]
+    return ray, t_k, x[ray, column], delta
+
+
+__all__ = ["camera_rays_reference", "grid_candidates_reference", "positional_encoding_reference",
+           "sample_pdf_reference", "stratified_samples_reference", "volume_render_reference"]

@@ -162,7 +162,7 @@ def train_nerf(rays: RayBundle, encoding: EncodingConfig, cameras: Cameras, *,
                grid_learning_rate: Annotated[float, Range(1e-6, 10.0)] = 0.6,
                lr_decay: Annotated[float, Range(1e-4, 1.0)] = 0.1,
                iterations: Annotated[int, Range(1, 1000000)] = 1000,
-               budget_seconds: Annotated[float, Range(0.0, 36000.0)] = 0.0,
+               budget_seconds: Annotated[float, Range(0.0, 36000.0)] = 60.0,
                preview_every: Annotated[int, Range(10, 100000)] = 100,
                background: Literal["white", "black"] = "white",
                rng: np.random.Generator, device: str = "cpu") -> Generator[Progress, None, TrainResult]:

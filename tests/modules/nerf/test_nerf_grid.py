@@ -111,3 +111,29 @@ def test_a_tiny_grid_run_through_the_steps():
     assert held.status == "ok" and held.metrics["psnr"] > 12
     view = session.run("render_view")
     assert view.status == "ok" and session.state["rendered"].pixels.shape == (100, 100, 3)
+
+
+@pytest.mark.parametrize("jittered", [False, True])
+def test_two_level_candidates_equal_checking_every_step(jittered):
+    """A sparse occupancy (a few blobs, one at the box's edge) and rays from every side: the same samples."""
+    from lab.modules.nerf.grid import grid_candidates
+    from lab.modules.nerf.reference import grid_candidates_reference
+
+    rng = np.random.default_rng(3)
+    r = 20
+    occupied = torch.zeros((r, r, r), dtype=torch.bool)
+    for i, j, k in rng.integers(0, r, (6, 3)):
+        occupied[max(i - 1, 0):i + 2, max(j - 1, 0):j + 2, max(k - 1, 0):k + 2] = True
+    occupied[r - 1, 5:8, 5:8] = True
+    bounds = N.SceneBounds(1.5, 4.5, np.zeros(3), 1.0)
+    directions = torch.as_tensor(rng.normal(0, 1, (300, 3)), dtype=torch.float32)
+    lengths = torch.as_tensor(rng.uniform(0.8, 1.0, (300, 1)), dtype=torch.float32)
+    directions = directions / (directions.norm(dim=1, keepdim=True) * lengths)
+    origins = -3.0 * directions / directions.norm(dim=1, keepdim=True) \
+        + torch.as_tensor(rng.normal(0, 0.3, (300, 3)), dtype=torch.float32)
+    jitter = torch.as_tensor(rng.uniform(0, 1, (300, 1)), dtype=torch.float32) if jittered else None
+    fast = grid_candidates(origins, directions, bounds, 1.0 / (r - 1), occupied, jitter)
+    slow = grid_candidates_reference(origins, directions, bounds, 1.0 / (r - 1), occupied, jitter)
+    assert len(slow[0]) > 100
+    for a, b in zip(fast, slow, strict=True):
+        np.testing.assert_allclose(a.numpy(), b.numpy(), rtol=1e-5, atol=1e-5)
