@@ -7,8 +7,13 @@ first by default, with seed 0 unless given) and writes into ``DIR``:
     the lesson's title and text, a table of every step with its time and metrics, the images
     (each image set's first views with their 2D overlays, plots), and the 3D scene embedded;
 ``scene.html``
-    the saved 3D scene (viser's ``scene.as_html()`` through :func:`lab.viewer.export_scene_html`),
+    the saved 3D scene (viser's ``scene.as_html()`` through :func:`lab.viewer.export.export_scene`),
     one self-contained file;
+``scene.png``
+    its poster: the scene as the page's initial camera sees it, drawn without a browser. The page shows
+    it at once where the scene goes (the interactive page takes about 15 s to show anything in
+    software-rendered chromium, issue 16) and loads the interactive scene in its place when asked, with
+    a "loading the 3D scene" note over the poster until it has loaded;
 ``images/*.png`` and ``report.json`` (the run's records: steps, controls, seconds, metrics).
 """
 
@@ -76,7 +81,7 @@ def write_report(lesson: Lesson, out_dir: Path | str, *, dataset: str | None = N
     (out / "images").mkdir(parents=True, exist_ok=True)
     run = run_lesson(lesson, dataset=dataset, seed=seed)
     pictures = _write_pictures(run.session, out / "images")
-    scene_note = _write_scene(run.session, out / "scene.html")
+    scene_note = _write_scene(run.session, out)
     (out / "report.json").write_text(json.dumps({
         "lesson": lesson.id, "title": lesson.title, "module": lesson.pipeline.name, "dataset": run.dataset,
         "options": _jsonable(run.options), "seed": run.seed, "error": run.error,
@@ -111,15 +116,54 @@ def _write_pictures(session: Session, folder: Path) -> list[tuple[str, str]]:
     return written
 
 
-def _write_scene(session: Session, path: Path) -> str:
-    """Save the 3D scene; returns "" or why it could not be saved."""
+def _write_scene(session: Session, out: Path) -> str:
+    """Save the 3D scene (``scene.html``) and its poster (``scene.png``); returns "" or why they could not be
+    saved."""
     try:
-        from lab.viewer import export_scene_html
+        import cv2
 
-        path.write_text(export_scene_html(session), encoding="utf-8")
+        from lab.viewer.export import export_scene
+
+        saved = export_scene(session)
+        (out / "scene.html").write_text(saved.html, encoding="utf-8")
+        cv2.imwrite(str(out / SCENE_POSTER), cv2.cvtColor(saved.poster, cv2.COLOR_RGB2BGR))
         return ""
     except Exception as exc:  # the report still has its tables and images
         return f"the 3D scene could not be saved ({type(exc).__name__}: {exc})"
+
+
+#: The report's poster of the 3D scene.
+SCENE_POSTER = "scene.png"
+#: How long after the interactive scene's page has loaded the poster still covers it (ms): the page then
+#: decodes and draws the scene, which a parent page cannot see (a file:// frame is another origin).
+SCENE_REVEAL_MS = 4000
+#: The script that loads the interactive scene under the poster when asked, and then shows it.
+_SCENE_SCRIPT = """<script>
+document.getElementById("scene-load").addEventListener("click", function () {
+  var box = document.getElementById("scene"), note = document.getElementById("scene-note");
+  var frame = document.createElement("iframe");
+  frame.src = "scene.html"; frame.title = "3D scene (interactive)";
+  note.textContent = "Loading the 3D scene\u2026 (the picture stays until it is ready; in software rendering "
+    + "this takes a while)";
+  this.remove();
+  frame.addEventListener("load", function () {
+    setTimeout(function () { box.classList.add("loaded"); note.textContent = "Interactive 3D scene: drag to "
+      + "orbit, scroll to zoom."; }, REVEAL_MS);
+  });
+  box.appendChild(frame);
+});
+</script>"""
+
+
+def _scene_section(scene_note: str) -> str:
+    """The report's 3D scene: the poster at once, the interactive scene in its place when asked."""
+    if scene_note:
+        return f'<p class="error">{html.escape(scene_note)}</p>'
+    return (f'<div id="scene" class="scene"><img src="{SCENE_POSTER}" alt="The 3D scene (a picture of it)">'
+            '</div><p><button id="scene-load" type="button">Explore the 3D scene</button> '
+            '<span id="scene-note">A picture of the 3D scene, as the interactive one starts.</span> '
+            '<a href="scene.html">Open the 3D scene on its own page</a></p>'
+            + _SCENE_SCRIPT.replace("REVEAL_MS", str(SCENE_REVEAL_MS)))
 
 
 def _markdown(text: str) -> str:
@@ -150,9 +194,7 @@ def _page(lesson: Lesson, run: LessonRun, pictures: list[tuple[str, str]], scene
     figures = "\n".join(f'<figure><img src="{e(src)}" alt="{e(caption)}">'
                         f'<figcaption>{e(caption)}</figcaption>'
                         f"</figure>" for caption, src in pictures)
-    scene = (f'<p class="error">{e(scene_note)}</p>' if scene_note else
-             '<iframe src="scene.html" title="3D scene"></iframe>'
-             '<p><a href="scene.html">Open the 3D scene</a></p>')
+    scene = _scene_section(scene_note)
     error = f'<p class="error">{e(run.error)}</p>' if run.error else ""
     options = ", ".join(f"{k}={v!r}" for k, v in run.options.items())
     return f"""<!doctype html>
@@ -161,7 +203,10 @@ def _page(lesson: Lesson, run: LessonRun, pictures: list[tuple[str, str]], scene
 body {{ font-family: system-ui, sans-serif; margin: 2rem auto; max-width: 1100px; padding: 0 1rem; }}
 table {{ border-collapse: collapse; width: 100%; }} td, th {{ border: 1px solid #ccc; padding: .3rem .5rem;
 vertical-align: top; font-size: .9rem; }} figure {{ display: inline-block; margin: .5rem; }}
-figure img {{ max-width: 320px; }} iframe {{ width: 100%; height: 600px; border: 1px solid #ccc; }}
+figure img {{ max-width: 320px; }}
+.scene {{ position: relative; width: 100%; aspect-ratio: 16 / 10; border: 1px solid #ccc; }}
+.scene img, .scene iframe {{ position: absolute; inset: 0; width: 100%; height: 100%; border: 0; }}
+.scene iframe {{ opacity: 0; }} .scene.loaded iframe {{ opacity: 1; }} .scene.loaded img {{ display: none; }}
 .error {{ color: #b00; }} pre {{ background: #f6f6f6; padding: .5rem; overflow-x: auto; }}
 </style></head><body>
 <h1>{e(lesson.title)}</h1>

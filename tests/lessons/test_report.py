@@ -4,6 +4,9 @@ from __future__ import annotations
 
 import json
 
+import cv2
+import numpy as np
+
 from lab.lessons.report import run_lesson, write_report
 
 
@@ -17,15 +20,21 @@ def test_run_lesson_runs_every_step_on_the_first_check_dataset(toy_lesson):
 
 
 def test_calibration_report_has_metrics_images_and_the_3d_scene(calibration_lesson, tmp_path):
-    index = write_report(calibration_lesson, tmp_path / "report", dataset="clean", seed=1)  # whole boards: detected
+    # the clean dataset: whole boards, every corner detected
+    index = write_report(calibration_lesson, tmp_path / "report", dataset="clean", seed=1)
     page = index.read_text()
     assert "<h1>Camera calibration: homographies and intrinsics</h1>" in page
     for step in ("detect_corners", "estimate_homographies", "estimate_intrinsics", "refine_calibration"):
         assert f"<td>{step}</td>" in page
     assert "rms_px = " in page and "fx_rel_error = " in page
-    assert '<iframe src="scene.html"' in page and "<details><summary>lesson.md</summary>" in page
+    assert "<details><summary>lesson.md</summary>" in page
+    # the 3D scene: its poster at once (the interactive page is loaded under it when asked), and a link
+    assert '<div id="scene" class="scene"><img src="scene.png"' in page and 'frame.src = "scene.html"' in page
+    assert 'id="scene-load"' in page and '<a href="scene.html">' in page
     scene = (tmp_path / "report" / "scene.html").read_text()
     assert scene.lstrip().lower().startswith("<!doctype html") and len(scene) > 10_000
+    poster = cv2.imread(str(tmp_path / "report" / "scene.png"))
+    assert poster is not None and poster.shape[1] > poster.shape[0] and np.any(poster < 128)
     images = sorted(p.name for p in (tmp_path / "report" / "images").iterdir())
     assert "images_view_00.png" in images and "per_view_rms.png" in images
     assert (tmp_path / "report" / "images" / "images_view_00.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
