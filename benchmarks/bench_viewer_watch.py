@@ -28,8 +28,9 @@ Measured 2026-12-02 on the 2-core shared machine (load average 8-10 from other w
 unless said: before the throttle (60ea3ad, one round) 3.05 s without a viewer, 5.37 s with one (x1.76;
 10 previews drawn, 1.6 s of CPU in the tab's listener); with the throttle 3.23 s and 4.09 s (x1.27; 3
 previews, 0.5 s in the listener, each draw re-making every frustum's picture); with the camera frustums
-also sent as deltas (``CamerasRenderer.update``) 2.80 s and 3.19 s (x1.14; every preview drawn, 0.1-0.2 s
-in the listener). Wall times on the same 2 cores as chromium's software rendering: 7.6 s and 11.7 s.
+also sent as deltas (``CamerasRenderer.update``, proposed for renderers.py) 2.80 s and 3.19 s (x1.14;
+every preview drawn, 0.1-0.2 s in the listener). Wall times on the same 2 cores as chromium's software
+rendering: 7.6 s and 11.7 s.
 """
 
 from __future__ import annotations
