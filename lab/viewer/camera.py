@@ -10,8 +10,10 @@ point projects inside the canvas with a margin, centred, through a pinhole with 
 of view and the canvas's aspect (viser docks its panels beside the canvas: the canvas is the free part of
 the window, and the client reports its size and fov on the camera handle).
 
-The tab frames once per session, so a student's own camera moves are never undone by a redraw; a canvas
-that changes shape (the image panel appears) before the student moved the camera is framed again.
+A student's own camera moves are never undone by a redraw: the tab frames the first 3D content of a session,
+and again only while the camera stands where the last fit put it: when the canvas changes shape (the image
+panel appears), or the content no longer fits that view (Run all adds a cloud many times the size of what
+was drawn before) or has shrunk to a speck.
 """
 
 from __future__ import annotations
@@ -145,6 +147,23 @@ def project(points: np.ndarray, pose: CameraPose, viewport: Viewport) -> np.ndar
     return out
 
 
+#: A framed view still fits content that lies inside this share of the canvas each way and spans at least
+#: :data:`MIN_SPAN` of it one way.
+STILL_FITS = 0.98
+MIN_SPAN = 0.3
+
+
+def fits(points: np.ndarray, pose: CameraPose, viewport: Viewport) -> bool:
+    """Whether ``points`` ``(N, 3)`` seen by ``pose`` lie in front of it, inside :data:`STILL_FITS` of the
+    canvas, and span at least :data:`MIN_SPAN` of it (else the tab's camera is framed again)."""
+    xy = project(points, pose, viewport)
+    if not len(xy) or not np.all(np.isfinite(xy)):
+        return False
+    margin = (1.0 - STILL_FITS) / 2.0
+    lo, hi = xy.min(axis=0), xy.max(axis=0)
+    return bool(np.all(lo >= margin) and np.all(hi <= 1.0 - margin) and float((hi - lo).max()) >= MIN_SPAN)
+
+
 def robust_points(values: Iterable[Any]) -> np.ndarray:
     """``(N, 3)`` points that bound the drawn 3D ``values``: their finite points with a few far outliers (a
     triangulated point at infinity) dropped: those outside the 1st-99th percentile box widened by half of
@@ -244,10 +263,30 @@ class CameraFramer:
         self.framed = False
 
     def frame(self, state: Mapping[str, Any], interactions: Iterable[Interaction]) -> None:
-        """Point the camera at the 3D content the first time there is some."""
-        if self.framed or not self.is_client:
+        """Point the camera at the 3D content the first time there is some, and again while the camera stands
+        where the last fit put it and the content no longer fits that view (epipolar's rig is drawn from the
+        truth before any step; Run all then adds a cloud many times its size) or has shrunk to a speck."""
+        if not self.is_client:
             return
-        self.fit(state, interactions)
+        if not self.framed:
+            self.fit(state, interactions)
+            return
+        with self._lock:
+            fit = self._fit
+        if fit is None or not self._untouched(fit[3]):
+            return
+        aimed = aim(state, interactions)
+        if aimed is not None and not fits(aimed[0], fit[3], fit[2] or Viewport()):
+            self._apply(*aimed, client_viewport(self.target.camera))
+
+    def _untouched(self, pose: CameraPose) -> bool:
+        """Whether the tab's camera stands where ``pose`` put it (True before the browser reported it)."""
+        try:
+            position = np.asarray(self.target.camera.position, dtype=np.float64)
+        except AssertionError:  # viser asserts until the browser has reported its camera
+            return True
+        return bool(np.linalg.norm(position - pose.position)
+                    <= 1e-3 * max(float(np.linalg.norm(pose.look_at - pose.position)), 1e-12))
 
 
     def fit(self, state: Mapping[str, Any], interactions: Iterable[Interaction]) -> None:
@@ -285,16 +324,11 @@ class CameraFramer:
         if used is not None and math.isclose(now.aspect, used.aspect, rel_tol=0.01) \
                 and math.isclose(now.fov, used.fov, rel_tol=0.01):
             return
-        try:
-            position = np.asarray(camera.position, dtype=np.float64)
-        except AssertionError:
-            return
-        moved = np.linalg.norm(position - pose.position) > 1e-3 * np.linalg.norm(pose.look_at - pose.position)
-        if moved and used is not None:
+        if used is not None and not self._untouched(pose):
             return
         self._apply(points, forward, now)
 
 
-__all__ = ["DEFAULT_ASPECT", "DEFAULT_FOV", "FILL", "CameraFramer", "CameraPose", "Viewport", "aim",
-           "box_corners", "camera_axes", "client_viewport", "fit_camera", "frame_pose", "framing", "project",
-           "robust_points"]
+__all__ = ["DEFAULT_ASPECT", "DEFAULT_FOV", "FILL", "MIN_SPAN", "STILL_FITS", "CameraFramer", "CameraPose",
+           "Viewport", "aim", "box_corners", "camera_axes", "client_viewport", "fit_camera", "fits",
+           "frame_pose", "framing", "project", "robust_points"]

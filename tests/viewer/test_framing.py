@@ -19,7 +19,7 @@ from lab.core.values import Cameras, PointCloud
 from lab.modules import get_pipeline
 from lab.viewer.app import ClientView, ModuleCatalog
 from lab.viewer.camera import (DEFAULT_ASPECT, FILL, CameraFramer, CameraPose, Viewport, aim, fit_camera,
-                               frame_pose, project)
+                               fits, frame_pose, project)
 from lab.viewer.interactions import Interaction
 
 #: The canvas of a 1400 x 900 window between the image panel (left) and the control panel (right).
@@ -214,3 +214,25 @@ def test_the_frustum_pictures_are_framed_not_only_the_camera_centres():
     np.testing.assert_allclose(np.abs(corners[:, 0]), depth * 4 / 3)
     points, _ = aim({"cameras": cameras}, [])
     assert len(points) == 1 + 4
+
+
+def test_content_that_outgrows_the_view_is_framed_again_while_the_camera_was_not_moved():
+    client = _Client(552 / 900)
+    framer = CameraFramer(client, is_client=True)
+    small = {"rig": PointCloud(np.array([[0.0, 0.0, 0.0], [1.0, 0.0, 0.0], [0.5, 0.3, 0.2]]))}
+    framer.frame(small, [])  # epipolar's rig, drawn from the truth before any step
+    first = np.array(client.camera.position)
+    framer.frame(small, [])  # the same content: nothing moves
+    np.testing.assert_allclose(client.camera.position, first)
+    rng = np.random.default_rng(1)
+    grown = {**small, "cloud": PointCloud(rng.uniform([-7, -5, 4], [7, 2, 15], (400, 3)))}
+    framer.frame(grown, [])  # Run all added a cloud many times the rig's size: framed again
+    viewport = Viewport(math.radians(75), 552 / 900)
+    np.testing.assert_allclose(client.camera.position, frame_pose(grown, [], viewport).position)
+    # the student orbits; content that grows again leaves the camera alone
+    client.camera.position = np.array(client.camera.position) + 3.0
+    moved = np.array(client.camera.position)
+    farther = {**grown, "far": PointCloud(rng.uniform([30, -5, 4], [60, 2, 15], (400, 3)))}
+    assert not fits(aim(farther, [])[0], frame_pose(grown, [], viewport), viewport)  # it would be refitted
+    framer.frame(farther, [])
+    np.testing.assert_allclose(client.camera.position, moved)
