@@ -5,13 +5,13 @@ without unfolding it. Screenshots go to the test's tmp dir. One lab server and o
 
 from __future__ import annotations
 
-import os
 import re
 from pathlib import Path
 
 import httpx
 import pytest
-from test_browser import CHROMIUM, CHROMIUM_ARGS, TIMEOUT_MS, _serve, free_port
+from conftest import unfold
+from test_browser import TIMEOUT_MS
 
 from lab.lessons.format import LessonCatalog
 
@@ -24,28 +24,6 @@ pytestmark = pytest.mark.e2e
 RUN_MS = 240_000
 
 
-@pytest.fixture(scope="module")
-def lab(tmp_path_factory):
-    """The lab served as a user starts it; yields (api_url, viewer_url)."""
-    log_path = tmp_path_factory.mktemp("lessons-server") / "server.log"
-    with open(log_path, "w") as log:
-        yield from _serve(free_port(), free_port(), dict(os.environ, PYTHONUNBUFFERED="1"), log)
-    text = log_path.read_text()
-    assert "Traceback" not in text, text[-3000:]
-
-
-@pytest.fixture(scope="module")
-def chromium():
-    from playwright.sync_api import sync_playwright
-
-    with sync_playwright() as playwright:
-        browser = playwright.chromium.launch(executable_path=CHROMIUM, args=CHROMIUM_ARGS)
-        try:
-            yield browser
-        finally:
-            browser.close()
-
-
 def _label(number: int, title: str, status: str) -> re.Pattern[str]:
     return re.compile(rf"^{number}\. {re.escape(title)} .*{status}")
 
@@ -54,46 +32,31 @@ def _label(number: int, title: str, status: str) -> re.Pattern[str]:
 QUICK = {"08-diffusion": {"train_denoiser": {"iterations": 300}, "sample": {"count": 200}}}
 
 
-def _unfold(page, label: re.Pattern[str], inside: str):
-    """The step folder labelled ``label``, unfolded (a click on its title; again if the GUI was redrawn
-    meanwhile) until ``inside`` (a locator in it) is visible; returns that locator."""
-    title = page.get_by_text(label).first
-    target = title.locator("xpath=..").locator(inside).first
-    for _ in range(5):
-        if target.is_visible():
-            break
-        title.click()
-        try:
-            target.wait_for(state="visible", timeout=3000)
-        except Exception:  # folded again or redrawn: try once more
-            continue
-    return target
-
-
 def _type_controls(page, pipeline, controls: dict[str, dict[str, float]]) -> None:
     names = [spec.name for spec in pipeline.steps]
     for step, values in controls.items():
         label = _label(names.index(step) + 1, pipeline.step(step).title, "")
         for name, value in values.items():
-            box = _unfold(page, label, f"xpath=.//label[normalize-space()='{name}']"
-                                       "/ancestor::div[.//input[@type='text']][1]//input[@type='text']")
+            box = unfold(page, label, f"xpath=.//label[normalize-space()='{name}']"
+                                      "/ancestor::div[.//input[@type='text']][1]//input[@type='text']")
             box.fill(f"{value:g}")
             box.press("Enter")
 
 
 def _run_to_here(page, label: re.Pattern[str]) -> None:
     """Press Run to here in the step folder labelled ``label``."""
-    _unfold(page, label, "role=button[name='Run to here']").click()
+    unfold(page, label, "role=button[name='Run to here']").click()
 
 
 @pytest.mark.parametrize("lesson_id", LESSONS)
-def test_a_lesson_card_opens_lesson_mode_and_the_starter_fails_visibly(lab, chromium, lesson_id, tmp_path):
-    api_url, _viewer = lab
+def test_a_lesson_card_opens_lesson_mode_and_the_starter_fails_visibly(served_lab, shared_browser, lesson_id,
+                                                                          tmp_path):
+    api_url, _viewer = served_lab
     lesson = CATALOG.get(lesson_id)
     task = lesson.tasks[0]
     names = [spec.name for spec in lesson.pipeline.steps]
     number, title = names.index(task.step) + 1, lesson.pipeline.step(task.step).title
-    page = chromium.new_page(viewport={"width": 1400, "height": 900})
+    page = shared_browser.new_page(viewport={"width": 1400, "height": 900})
     errors: list[str] = []
     page.on("console", lambda message: errors.append(message.text) if message.type == "error" else None)
     try:
