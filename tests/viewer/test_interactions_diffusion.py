@@ -176,10 +176,11 @@ def test_the_samples_read_apart_from_the_training_points_and_the_legend_says_whi
     assert "see-through" in mesh.swatches[0].marks and 0 < PLAIN_MESH_OPACITY < 0.5
     # the scrubber's drawings are in the legend with the frame shown
     legend = {e.name: e for e in part.legend()}
-    assert set(legend) == {"x_t", "x0_hat", "trajectories"}
-    [swatch] = legend["x_t"].swatches
+    assert set(legend) == {"scrubbed x_t", "scrubbed x0_hat", "sample paths"}
+    assert not set(legend) & set(state)  # never a session value's name (the legend would read as if it were)
+    [swatch] = legend["scrubbed x_t"].swatches
     assert swatch.color == NOISY_COLOR and "frame 3 of 6" in swatch.marks
-    assert legend["x_t"].count == 100 and legend["trajectories"].count == 16 * 3
+    assert legend["scrubbed x_t"].count == 100 and legend["sample paths"].count == 16 * 3
     view.session.reset("sample")
     view.refresh(force=True)
     assert part.legend() == []

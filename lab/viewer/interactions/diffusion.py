@@ -215,15 +215,15 @@ class SamplerScrubber(Interaction):
         if self.clouds is None or self.trace is None:
             return []
         frame = f"frame {self.index} of {self.trace.frames - 1}"
-        entries = [LegendEntry("x_t", "points", len(self.clouds[0]),
+        entries = [LegendEntry("scrubbed x_t", "points", len(self.clouds[0]),
                                (Swatch(NOISY_COLOR, f"the samples at {frame} (slider 'frame')"),),
                                "noise at frame 0; at the last frame the generated samples"),
-                   LegendEntry("x0_hat", "points", len(self.clouds[1]),
+                   LegendEntry("scrubbed x0_hat", "points", len(self.clouds[1]),
                                (Swatch(CLEAN_COLOR, "the clean samples the model predicts from x_t"),),
                                "drawn beside x_t (shifted along +x)")]
         if len(self.segments):
             paths = Swatch(TRAJECTORY_COLOR, f"the paths of {TRAJECTORIES} samples so far")
-            entries.append(LegendEntry("trajectories", "segments", len(self.segments), (paths,)))
+            entries.append(LegendEntry("sample paths", "segments", len(self.segments), (paths,)))
         return entries
 
     def _draw_points(self) -> None:
