@@ -19,8 +19,8 @@ from typing import Annotated, Literal
 import numpy as np
 import torch
 
-from lab.core import (Cameras, Curve, Image, ImageSet, InvalidControl, InvalidValue, Progress, Range,
-                      Segments3D, metric, step_result)
+from lab.core import (Cameras, CapacityExceeded, Curve, Image, ImageSet, InvalidControl, InvalidValue,
+                      Progress, Range, Segments3D, metric, step_result)
 from lab.modules.nerf.encoding import encoding_size, positional_encoding
 from lab.modules.nerf.grid import (GridCheckpoint, GridField, GridOptions, grid_checkpoint_from, grid_from,
                                    grid_step, render_grid, render_grid_image, train_grid_field)
@@ -33,6 +33,10 @@ from lab.modules.nerf.values import (EncodingConfig, FieldConfig, NerfCheckpoint
 
 #: Largest side of the preview rendered while training.
 PREVIEW_SIDE = 64
+#: Most samples (rays x samples per ray) one MLP batch may hold, and most activations (samples x width):
+#: about a gigabyte of what the backward pass keeps.
+MAX_BATCH_SAMPLES = 2**21
+MAX_BATCH_ACTIVATIONS = 2**27
 
 BACKGROUNDS = {"white": (1.0, 1.0, 1.0), "black": (0.0, 0.0, 0.0)}
 
@@ -156,7 +160,7 @@ def train_nerf(rays: RayBundle, encoding: EncodingConfig, cameras: Cameras, *,
                method: Literal["mlp", "grid"] = "mlp",
                samples: Annotated[int, Range(2, 512)] = 32, fine_samples: Annotated[int, Range(0, 512)] = 0,
                hidden: Annotated[int, Range(8, 512)] = 64, layers: Annotated[int, Range(1, 12)] = 4,
-               grid_resolution: Annotated[int, Range(8, 512)] = 128,
+               grid_resolution: Annotated[int, Range(8, 256)] = 128,
                batch_rays: Annotated[int, Range(1, 65536)] = 1024,
                learning_rate: Annotated[float, Range(1e-6, 1.0)] = 5e-3,
                grid_learning_rate: Annotated[float, Range(1e-6, 10.0)] = 0.6,
@@ -198,6 +202,7 @@ def train_nerf(rays: RayBundle, encoding: EncodingConfig, cameras: Cameras, *,
         background: the colour behind the scene (white for object datasets).
     """
     bundle = as_rays(rays)
+    _check_batch(method, batch_rays, samples + fine_samples, hidden)
     colour = torch.tensor(BACKGROUNDS[background], dtype=torch.float32, device=device)
     small = scaled_cameras(cameras, min(1.0, PREVIEW_SIDE / max(cameras.width, cameras.height)))
     origins, directions = cameras_rays(small, device=device)
@@ -226,6 +231,20 @@ def train_nerf(rays: RayBundle, encoding: EncodingConfig, cameras: Cameras, *,
                        float(run.losses[-tail:].mean()), float(np.minimum(run.psnrs[-tail:], 99.0).mean()),
                        run.iterations, run.seconds, run.iterations * batch_rays / max(run.seconds, 1e-9),
                        run.samples_per_ray)
+
+
+def _check_batch(method: str, batch_rays: int, samples: int, hidden: int) -> None:
+    """Refuse (:class:`CapacityExceeded`) an MLP batch whose backward pass would hold more than about a GB."""
+    if method != "mlp":
+        return
+    if batch_rays * samples > MAX_BATCH_SAMPLES:
+        raise CapacityExceeded("batch_rays", f"{batch_rays} rays x {samples} samples is more than "
+                                             f"{MAX_BATCH_SAMPLES} samples a batch: use fewer rays or "
+                                             "samples")
+    if batch_rays * samples * hidden > MAX_BATCH_ACTIVATIONS:
+        raise CapacityExceeded("hidden", f"{batch_rays} rays x {samples} samples x {hidden} wide is more "
+                                         f"than {MAX_BATCH_ACTIVATIONS} activations a layer: use a narrower "
+                                         "MLP or fewer rays")
 
 
 # ----------------------------------------------------------------------------------------------------
@@ -347,6 +366,6 @@ def render_view(model: NerfCheckpoint | GridCheckpoint, test_cameras: Cameras, *
                       Image(np.clip(image.opacity, 0.0, 1.0), name="opacity"), weights, seconds)
 
 
-__all__ = ["BACKGROUNDS", "PREVIEW_SIDE", "EncodingResult", "FieldRenderer", "HeldOutResult", "RaysResult",
-           "TrainResult", "ViewResult", "encode_positions", "generate_rays", "render_held_out", "render_view",
-           "train_nerf"]
+__all__ = ["BACKGROUNDS", "MAX_BATCH_ACTIVATIONS", "MAX_BATCH_SAMPLES", "PREVIEW_SIDE", "EncodingResult",
+           "FieldRenderer", "HeldOutResult", "RaysResult", "TrainResult", "ViewResult", "encode_positions",
+           "generate_rays", "render_held_out", "render_view", "train_nerf"]

@@ -154,3 +154,14 @@ def test_evaluation_known_answers():
     truth = np.array([[2.0, np.inf], [3.0, np.inf]])
     assert N.depth_error(np.array([[2.5, 9.0], [2.0, 9.0]]), truth) == pytest.approx(0.75)
     assert N.evaluate_held_out({}, {}) == {}
+
+
+def test_a_batch_too_large_for_memory_is_refused_before_training(session):
+    from lab.core import CapacityExceeded
+
+    with pytest.raises(CapacityExceeded) as info:
+        _train(session, batch_rays=65536, samples=64)
+    assert info.value.field == "batch_rays"
+    with pytest.raises(CapacityExceeded) as info:
+        _train(session, batch_rays=8192, samples=64, hidden=512)
+    assert info.value.field == "hidden"
