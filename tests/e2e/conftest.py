@@ -213,7 +213,7 @@ def unfold(page: Any, label: Any, inside: str) -> Any:
     for _ in range(5):
         if target.is_visible():
             break
-        title.click()
+        title.click(timeout=WAIT_MS)  # a page busy drawing (software WebGL, a loaded machine) is slow
         try:
             target.wait_for(state="visible", timeout=3000)
         except Exception:  # folded again or redrawn: try once more

@@ -255,7 +255,7 @@ def test_run_all_from_the_landing_page_shows_the_module(served_lab, shared_brows
         (OUTPUT / f"{module}-seen.json").write_text(json.dumps(
             {"seconds": seconds, "progress": records, "screen": on_screen}, indent=1))
         problems = _progress_problems(records, long_steps, seconds)
-        problems += _legend_problems(page, module, session["values"])
+        problems += _legend_problems(page, module, [name for name, _prefix, _long in steps])
         problems += _framing_problems(on_screen)
         problems += [f"console error: {error}" for error in errors]
         assert not problems, f"{module}:\n" + "\n".join(problems)
@@ -292,19 +292,21 @@ def _progress_problems(records: list[dict[str, Any]], long_steps: list[tuple[str
     return problems
 
 
-def _legend_problems(page: Any, module: str, values: Iterable[str]) -> list[str]:
-    """What is wrong with the Scene panel's legend: it must list entries; one naming a session value
-    (``values``) must be drawn at ``/lab/<name>``, any other (what an interaction draws) under
-    ``/explore/<module>``."""
+def _legend_problems(page: Any, module: str, steps: Iterable[str]) -> list[str]:
+    """What is wrong with the Scene panel's legend: it must list entries; one a step or the dataset wrote
+    (its producer, in brackets) must be drawn at ``/lab/<name>``, one an interaction draws (the
+    interaction's title) somewhere under ``/explore/<module>``."""
     legend = page.get_by_text("Scene: legend and view", exact=True).locator("xpath=..")
-    entries = legend.locator("b").all_inner_texts()
+    entries = legend.locator("b").evaluate_all(
+        "(names) => names.map((b) => [b.textContent, b.nextElementSibling && b.nextElementSibling.tagName "
+        "=== 'SPAN' ? b.nextElementSibling.textContent.replace(/^\\(|\\)$/g, '') : ''])")
     if not entries:
         return [f"the legend lists nothing: {legend.inner_text()!r}"]
     nodes = page.evaluate("() => Object.keys(window.__viserSceneTree.getState())")
-    state = set(values)
-    missing = [name for name in entries if name in state and f"/lab/{name}" not in nodes]
+    writers = {*steps, "dataset"}
     explored = any(node.startswith(f"/explore/{module}/") for node in nodes)
-    undrawn = [name for name in entries if name not in state and not explored]
+    missing = [f"{name} ({by})" for name, by in entries if by in writers and f"/lab/{name}" not in nodes]
+    undrawn = [f"{name} ({by})" for name, by in entries if by not in writers and not explored]
     problems = [f"legend entries of session values not drawn under /lab: {missing}"] if missing else []
     return problems + ([f"legend entries of interactions with nothing under /explore/{module}: {undrawn}"]
                        if undrawn else [])
