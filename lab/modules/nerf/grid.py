@@ -122,13 +122,36 @@ class GridField(torch.nn.Module):
             return fine[0].permute(1, 2, 3, 0).reshape(-1, channels).contiguous()
         return GridField(resolution, up(self.density, 1), up(self.color, 3)).to(self.density.device)
 
-    def occupancy(self) -> torch.Tensor:
-        """``(R, R, R)`` bool: vertices whose density, dilated over their neighbours, is at least
-        :data:`EMPTY_SIGMA`."""
+    def occupancy(self) -> Occupancy:
+        """The vertices whose density, dilated over their neighbours, is at least :data:`EMPTY_SIGMA`,
+        for sampling at :func:`grid_step`."""
         r = self.resolution
         with torch.no_grad():
             sigma = torch.nn.functional.softplus(self.density.reshape(1, 1, r, r, r) + DENSITY_SHIFT)
-            return torch.nn.functional.max_pool3d(sigma, 3, stride=1, padding=1)[0, 0] >= EMPTY_SIGMA
+            cells = torch.nn.functional.max_pool3d(sigma, 3, stride=1, padding=1)[0, 0] >= EMPTY_SIGMA
+        return Occupancy.of(cells, grid_step(self))
+
+
+@dataclass(frozen=True, eq=False)
+class Occupancy:
+    """Which vertices of an ``R^3`` grid may hold density: ``cells`` ``(R, R, R)`` bool, and the same dilated
+    by ``reach`` vertices (``wider``, covering vertices ``-reach .. R - 1 + reach``) for the first level
+    of :func:`grid_candidates` at a given step."""
+
+    cells: torch.Tensor
+    wider: torch.Tensor
+    reach: int
+
+    @classmethod
+    def of(cls, cells: torch.Tensor, step: float) -> Occupancy:
+        """The occupancy of ``cells`` for sampling every ``step`` (normalized units): a group of
+        :data:`GROUP` steps lies within ``(GROUP - 1) / 2`` steps of its middle, so ``reach`` is that in
+        voxels plus one (each end's nearest vertex is within half a voxel)."""
+        r = cells.shape[0]
+        reach = 1 + int((GROUP - 1) / 2 * step * (r - 1) / 2)
+        around = torch.nn.functional.pad(cells, (reach,) * 6)[None, None].float()
+        wider = torch.nn.functional.max_pool3d(around, 2 * reach + 1, stride=1, padding=reach)[0, 0] > 0
+        return cls(cells, wider, reach)
 
 
 @dataclass(frozen=True)
@@ -153,12 +176,12 @@ def _occupied_at(occupied: torch.Tensor, x: torch.Tensor, resolution: int, margi
 
 
 def grid_candidates(origins: torch.Tensor, directions: torch.Tensor, bounds: SceneBounds, step: float,
-                    occupied: torch.Tensor | None, jitter: torch.Tensor | None) -> tuple[torch.Tensor, ...]:
+                    occupied: Occupancy | None, jitter: torch.Tensor | None) -> tuple[torch.Tensor, ...]:
     """The samples worth a look, packed ray after ray: every ``step`` (normalized units, so
     ``step radius / |d|`` in depth) from near to far, shifted by ``jitter`` ``(R, 1)`` of a step (half a
-    step without), kept where their nearest vertex is occupied (``occupied`` ``(R, R, R)``; None: the whole
-    box). Returns the ray of each ``(K,)``, its depth ``(K,)``, normalized point ``(K, 3)`` and interval
-    length ``(K,)`` (a distance).
+    step without), kept where their nearest vertex is occupied (``occupied``, made for this ``step``;
+    None: the whole box). Returns the ray of each ``(K,)``, its depth ``(K,)``, normalized point
+    ``(K, 3)`` and interval length ``(K,)`` (a distance).
 
     Two levels: the middles of groups of :data:`GROUP` steps are checked first against the occupancy
     dilated far enough to cover the whole group, and only the steps of the groups that pass are made and
@@ -166,8 +189,8 @@ def grid_candidates(origins: torch.Tensor, directions: torch.Tensor, bounds: Sce
     (:func:`~lab.modules.nerf.reference.grid_candidates_reference`) at about a quarter of the work.
     """
     if occupied is None:
-        occupied = torch.ones((2, 2, 2), dtype=torch.bool, device=origins.device)
-    r = occupied.shape[0]
+        occupied = Occupancy.of(torch.ones((2, 2, 2), dtype=torch.bool, device=origins.device), step)
+    r = occupied.cells.shape[0]
     norm = directions.norm(dim=-1)
     depth_step = step * bounds.radius / norm                                              # (R,)
     count = math.ceil((bounds.far - bounds.near) / float(depth_step.min()))
@@ -180,26 +203,22 @@ def grid_candidates(origins: torch.Tensor, directions: torch.Tensor, bounds: Sce
         x = (origins[rows][..., None, :] - centre + t[..., None] * directions[rows][..., None, :])
         return t, x / bounds.radius
 
-    # a group's steps lie within (GROUP - 1) / 2 steps of its middle: that many voxels more, plus one
-    reach = 1 + int((GROUP - 1) / 2 * step * (r - 1) / 2)
-    around = torch.nn.functional.pad(occupied, (reach,) * 6)[None, None].float()
-    wider = torch.nn.functional.max_pool3d(around, 2 * reach + 1, stride=1, padding=reach)[0, 0] > 0
     rows = torch.arange(len(origins), device=origins.device)
     groups = torch.arange(math.ceil(count / GROUP), dtype=origins.dtype, device=origins.device)
     _, x_mid = points(rows, groups[None] * GROUP + (GROUP - 1) / 2 + shift)
-    ray, group = _occupied_at(wider, x_mid, r, reach).nonzero(as_tuple=True)
+    ray, group = _occupied_at(occupied.wider, x_mid, r, occupied.reach).nonzero(as_tuple=True)
     column = (group[:, None] * GROUP + torch.arange(GROUP, device=origins.device)[None]).reshape(-1)
     ray = ray[:, None].expand(-1, GROUP).reshape(-1)
     t, x = points(ray, column.to(origins.dtype)[:, None] + shift[ray])
     t, x = t[:, 0], x[:, 0]
-    keep = (column < count) & (t < bounds.far) & _occupied_at(occupied, x, r)
+    keep = (column < count) & (t < bounds.far) & _occupied_at(occupied.cells, x, r)
     ray, t, x = ray[keep], t[keep], x[keep]
     delta = torch.minimum(depth_step[ray], bounds.far - t) * norm[ray]
     return ray, t, x, delta
 
 
 def render_grid(field: GridField, origins: torch.Tensor, directions: torch.Tensor, bounds: SceneBounds, *,
-                step: float, background: torch.Tensor, occupied: torch.Tensor | None,
+                step: float, background: torch.Tensor, occupied: Occupancy | None,
                 jitter: torch.Tensor | None = None) -> tuple[PackedRendering, torch.Tensor]:
     """Render rays ``(R, 3)`` through the grid with empty-space skipping and early termination (the module
     docstring). Returns the :class:`~lab.modules.nerf.rendering.PackedRendering` and the depths ``(K,)`` of
@@ -329,5 +348,5 @@ def grid_from(checkpoint: GridCheckpoint, device: str = "cpu") -> GridField:
 
 
 __all__ = ["DENSITY_SHIFT", "EMPTY_SIGMA", "GROUP", "OCCUPANCY_EVERY", "SKIP_BELOW", "GridCheckpoint",
-           "GridField", "GridOptions", "grid_candidates", "grid_checkpoint_from", "grid_from", "grid_step",
-           "render_grid", "render_grid_image", "train_grid_field"]
+           "GridField", "GridOptions", "Occupancy", "grid_candidates", "grid_checkpoint_from", "grid_from",
+           "grid_step", "render_grid", "render_grid_image", "train_grid_field"]

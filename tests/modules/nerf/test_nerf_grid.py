@@ -70,7 +70,7 @@ def test_occupancy_marks_dense_cells_and_their_neighbours_only():
     field = N.GridField(8, torch.full((8, 8, 8), -20.0))
     with torch.no_grad():
         field.density.view(8, 8, 8)[3, 4, 5] = 10.0
-    occupied = field.occupancy()
+    occupied = field.occupancy().cells
     assert occupied[2:5, 3:6, 4:7].all() and int(occupied.sum()) == 27
 
 
@@ -116,7 +116,7 @@ def test_a_tiny_grid_run_through_the_steps():
 @pytest.mark.parametrize("jittered", [False, True])
 def test_two_level_candidates_equal_checking_every_step(jittered):
     """A sparse occupancy (a few blobs, one at the box's edge) and rays from every side: the same samples."""
-    from lab.modules.nerf.grid import grid_candidates
+    from lab.modules.nerf.grid import Occupancy, grid_candidates
     from lab.modules.nerf.reference import grid_candidates_reference
 
     rng = np.random.default_rng(3)
@@ -132,7 +132,8 @@ def test_two_level_candidates_equal_checking_every_step(jittered):
     origins = -3.0 * directions / directions.norm(dim=1, keepdim=True) \
         + torch.as_tensor(rng.normal(0, 0.3, (300, 3)), dtype=torch.float32)
     jitter = torch.as_tensor(rng.uniform(0, 1, (300, 1)), dtype=torch.float32) if jittered else None
-    fast = grid_candidates(origins, directions, bounds, 1.0 / (r - 1), occupied, jitter)
+    fast = grid_candidates(origins, directions, bounds, 1.0 / (r - 1), Occupancy.of(occupied, 1.0 / (r - 1)),
+                           jitter)
     slow = grid_candidates_reference(origins, directions, bounds, 1.0 / (r - 1), occupied, jitter)
     assert len(slow[0]) > 100
     for a, b in zip(fast, slow, strict=True):
