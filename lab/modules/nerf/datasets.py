@@ -14,7 +14,6 @@ from __future__ import annotations
 import json
 import math
 import os
-import tempfile
 from typing import Annotated, Literal
 
 import cv2
@@ -176,24 +175,18 @@ def _read_split(folder: str, split: str, limit: int, downscale: int) -> tuple[li
 def _read_frames(file: str,
                  folder: str) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, tuple[str, ...]]:
     """:func:`read_transforms_json` of a NeRF-synthetic file, which gives ``camera_angle_x`` but no image
-    size: the size of the first frame's image is added to a copy first (until the reader takes a default
-    size itself: patch ``nerf-transforms-size.diff``)."""
+    size: the size of the first frame's image is the default (a size in the file still wins)."""
     try:
         with open(file) as stream:
             data = json.loads(stream.read())
-    except (OSError, json.JSONDecodeError, UnicodeDecodeError) as exc:
-        raise InvalidValue("path", f"{file!r} is not JSON: {exc}") from None
+    except (OSError, json.JSONDecodeError, UnicodeDecodeError):
+        data = None
     frames = data.get("frames") if isinstance(data, dict) else None
-    if not isinstance(frames, list) or not frames:
-        raise InvalidValue("path", f"{file!r} has no frames")
-    if ("w" in data and "h" in data) or not isinstance(frames[0], dict) or "file_path" not in frames[0]:
-        return read_transforms_json(file)
+    if not isinstance(frames, list) or not frames or not isinstance(frames[0], dict) \
+            or "file_path" not in frames[0]:
+        return read_transforms_json(file)          # it names what is wrong with the file
     first = read_image_file(_image_path(folder, str(frames[0]["file_path"]), "frames[0]"))
-    with tempfile.TemporaryDirectory() as scratch:
-        copy = os.path.join(scratch, os.path.basename(file))
-        with open(copy, "w") as out:
-            json.dump({**data, "w": int(first.shape[1]), "h": int(first.shape[0])}, out)
-        return read_transforms_json(copy)
+    return read_transforms_json(file, default_size=(int(first.shape[1]), int(first.shape[0])))
 
 
 def nerf_synthetic(*, path: str, downscale: Annotated[int, Range(1, 16)] = 8,

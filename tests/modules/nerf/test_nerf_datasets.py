@@ -138,8 +138,9 @@ def test_nerf_synthetic_errors_name_the_problem(tmp_path, blender_folder):
     # no frames at all, a NaN pose
     data = json.loads((broken / "transforms_test.json").read_text())
     (broken / "transforms_test.json").write_text(json.dumps({**data, "frames": []}))
-    with pytest.raises(InvalidValue, match="no frames"):
+    with pytest.raises(InvalidValue, match="no 'frames'") as info:
         N.nerf_synthetic(path=str(broken), downscale=1, train_views=2)
+    assert info.value.field == "frames"
     data["frames"][1]["transform_matrix"][0][3] = float("nan")
     (broken / "transforms_test.json").write_text(json.dumps(data))
     with pytest.raises(InvalidValue, match="finite") as info:
