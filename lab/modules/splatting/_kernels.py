@@ -1,0 +1,147 @@
+"""The compiled loops of the fast rasterizer: front-to-back compositing per tile and its backward pass.
+
+Both follow the paper's code (Kerbl et al. 2023, ``renderCUDA`` in ``forward.cu`` and ``backward.cu``), one
+tile after another instead of one CUDA block per tile, in the dtype of their inputs (float32 to train,
+float64 in the tests). The backward pass walks each pixel's list back to front from its last contributor,
+recovering ``T_i`` by dividing by ``1 - alpha_i`` and the colour behind each Gaussian as a running sum, as
+the paper's code does; unlike that code, it takes the clamp ``alpha <= 0.99`` into account (no gradient
+through a clamped alpha: gsplat does the same), so it is the derivative autograd gives the reference.
+Gradients are summed into one buffer per band of tiles (bands run on different threads).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from lab.core.kernels import kernel, register_warm_up
+
+ALPHA_MIN = 1.0 / 255.0
+ALPHA_MAX = 0.99
+T_MIN = 1e-4
+
+
+@kernel
+def _rasterize_forward_kernel(tile_start: int, tile_stop: int, ranges: np.ndarray, ids: np.ndarray,
+                              means2d: np.ndarray, conics: np.ndarray, colors: np.ndarray,
+                              opacities: np.ndarray, background: np.ndarray, tile_size: int, tiles_x: int,
+                              image: np.ndarray, final_t: np.ndarray, n_contrib: np.ndarray) -> None:
+    """Composite tiles ``tile_start .. tile_stop`` (row-major) into ``image`` (H, W, 3); ``final_t`` (H, W)
+    the transmittance left, ``n_contrib`` (H, W) how far into its tile's list each pixel read (1 past its
+    last contributor)."""
+    height, width = final_t.shape
+    for tile in range(tile_start, tile_stop):
+        ty, tx = tile // tiles_x, tile % tiles_x
+        start, stop = ranges[tile, 0], ranges[tile, 1]
+        for py in range(ty * tile_size, min(height, (ty + 1) * tile_size)):
+            for px in range(tx * tile_size, min(width, (tx + 1) * tile_size)):
+                T = 1.0
+                r = 0.0
+                g = 0.0
+                b = 0.0
+                last = 0
+                for k in range(start, stop):
+                    i = ids[k]
+                    dx = means2d[i, 0] - px
+                    dy = means2d[i, 1] - py
+                    power = -0.5 * (conics[i, 0] * dx * dx + conics[i, 2] * dy * dy) - conics[i, 1] * dx * dy
+                    if power > 0.0:
+                        continue
+                    alpha = min(ALPHA_MAX, opacities[i] * np.exp(power))
+                    if alpha < ALPHA_MIN:
+                        continue
+                    next_t = T * (1.0 - alpha)
+                    if next_t < T_MIN:
+                        break
+                    weight = alpha * T
+                    r += colors[i, 0] * weight
+                    g += colors[i, 1] * weight
+                    b += colors[i, 2] * weight
+                    T = next_t
+                    last = k - start + 1
+                image[py, px, 0] = r + T * background[0]
+                image[py, px, 1] = g + T * background[1]
+                image[py, px, 2] = b + T * background[2]
+                final_t[py, px] = T
+                n_contrib[py, px] = last
+
+
+@kernel
+def _rasterize_backward_kernel(tile_start: int, tile_stop: int, ranges: np.ndarray, ids: np.ndarray,
+                               means2d: np.ndarray, conics: np.ndarray, colors: np.ndarray,
+                               opacities: np.ndarray, background: np.ndarray, tile_size: int, tiles_x: int,
+                               final_t: np.ndarray, n_contrib: np.ndarray, grad_image: np.ndarray,
+                               grads: np.ndarray) -> None:
+    """Add to ``grads`` (N, 9) the gradients of the loss (whose gradient in the image is ``grad_image``)
+    with respect to each Gaussian's mean (2), conic (3), colour (3) and opacity (1), over tiles
+    ``tile_start .. tile_stop``."""
+    height, width = final_t.shape
+    for tile in range(tile_start, tile_stop):
+        ty, tx = tile // tiles_x, tile % tiles_x
+        start = ranges[tile, 0]
+        for py in range(ty * tile_size, min(height, (ty + 1) * tile_size)):
+            for px in range(tx * tile_size, min(width, (tx + 1) * tile_size)):
+                T_final = final_t[py, px]
+                T = T_final
+                dr, dg, db = grad_image[py, px, 0], grad_image[py, px, 1], grad_image[py, px, 2]
+                behind_bg = -T_final * (background[0] * dr + background[1] * dg + background[2] * db)
+                acc_r = 0.0
+                acc_g = 0.0
+                acc_b = 0.0
+                last_alpha = 0.0
+                last_r = 0.0
+                last_g = 0.0
+                last_b = 0.0
+                for k in range(start + n_contrib[py, px] - 1, start - 1, -1):
+                    i = ids[k]
+                    dx = means2d[i, 0] - px
+                    dy = means2d[i, 1] - py
+                    power = -0.5 * (conics[i, 0] * dx * dx + conics[i, 2] * dy * dy) - conics[i, 1] * dx * dy
+                    if power > 0.0:
+                        continue
+                    G = np.exp(power)
+                    raw = opacities[i] * G
+                    alpha = min(ALPHA_MAX, raw)
+                    if alpha < ALPHA_MIN:
+                        continue
+                    T = T / (1.0 - alpha)
+                    weight = alpha * T
+                    # the colour composited behind this Gaussian, per unit of the light reaching it
+                    acc_r = last_alpha * last_r + (1.0 - last_alpha) * acc_r
+                    acc_g = last_alpha * last_g + (1.0 - last_alpha) * acc_g
+                    acc_b = last_alpha * last_b + (1.0 - last_alpha) * acc_b
+                    cr, cg, cb = colors[i, 0], colors[i, 1], colors[i, 2]
+                    last_r, last_g, last_b = cr, cg, cb
+                    last_alpha = alpha
+                    grads[i, 5] += weight * dr
+                    grads[i, 6] += weight * dg
+                    grads[i, 7] += weight * db
+                    if raw > ALPHA_MAX:        # clamped: alpha does not depend on the parameters here
+                        continue
+                    d_alpha = T * ((cr - acc_r) * dr + (cg - acc_g) * dg + (cb - acc_b) * db)
+                    d_alpha += behind_bg / (1.0 - alpha)
+                    grads[i, 8] += G * d_alpha
+                    d_power = d_alpha * raw
+                    grads[i, 0] += d_power * -(conics[i, 0] * dx + conics[i, 1] * dy)
+                    grads[i, 1] += d_power * -(conics[i, 2] * dy + conics[i, 1] * dx)
+                    grads[i, 2] += d_power * -0.5 * dx * dx
+                    grads[i, 3] += d_power * -dx * dy
+                    grads[i, 4] += d_power * -0.5 * dy * dy
+
+
+def _warm_up() -> None:
+    """Compile both kernels for float32 (training) on a one-tile image with one Gaussian."""
+    from lab.modules.splatting.rasterize import rasterize_image
+
+    import torch
+
+    means2d = torch.tensor([[4.0, 4.0]], requires_grad=True)
+    conics = torch.tensor([[0.2, 0.0, 0.2]], requires_grad=True)
+    colors = torch.tensor([[0.5, 0.5, 0.5]], requires_grad=True)
+    opacities = torch.tensor([0.5], requires_grad=True)
+    image = rasterize_image(means2d, conics, colors, opacities, torch.tensor([1.0]),
+                            torch.tensor([[0, 0, 1, 1]]), torch.ones(3), width=8, height=8, tile_size=16)
+    image.sum().backward()
+
+
+register_warm_up("splatting", ["train_splats", "render_held_out", "render_view"],
+                 [_rasterize_forward_kernel, _rasterize_backward_kernel], _warm_up)

@@ -1,0 +1,228 @@
+"""The fast Gaussian rasterizer against its readable reference (images and every parameter's gradient), a
+single Gaussian against its closed form, early termination, empty views, and the math underneath
+(quaternions, covariances, spherical harmonics, projection, tile binning). Scenes are tiny: the reference
+composites one pixel at a time."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+import torch
+
+from lab.core import CapacityExceeded
+from lab.modules.splatting import gaussians as G
+from lab.modules.splatting import rasterize as RZ
+from lab.modules.splatting import reference as REF
+from lab.modules.splatting.sh import C0, sh_basis, sh_colors
+
+torch.set_num_threads(1)
+F64 = torch.float64
+NAMES = ("means", "log_scales", "quats", "opacity_logits", "sh")
+
+
+def camera(width: int = 36, height: int = 26, *, R: torch.Tensor | None = None) -> G.View:
+    """A pinhole at the origin looking down +z (or rotated by ``R``), off-centre principal point."""
+    return G.View(torch.eye(3, dtype=F64) if R is None else R, torch.zeros(3, dtype=F64), 28.0, 30.0,
+                  0.47 * width, 0.52 * height, width, height)
+
+
+def random_scene(seed: int, count: int = 24) -> dict[str, torch.Tensor]:
+    """Gaussians in front of ``camera()`` with every awkward case the rasterizer meets: overlapping ones,
+    tiny and huge ones, one behind the camera and one nearer than the near plane, ones straddling and
+    outside the image edges, opaque ones (alpha clamped at 0.99) and a stack deep enough to end pixels
+    early (T < 1e-4)."""
+    g = torch.Generator().manual_seed(seed)
+    xy = (torch.rand(count, 2, generator=g, dtype=F64) - 0.5) * torch.tensor([1.6, 1.2], dtype=F64)
+    z = 1.5 + 2.0 * torch.rand(count, 1, generator=g, dtype=F64)
+    means = torch.cat([xy * z, z], dim=1)
+    log_scales = torch.log(0.03 + 0.25 * torch.rand(count, 3, generator=g, dtype=F64))
+    quats = torch.randn(count, 4, generator=g, dtype=F64)
+    logits = 2.0 * torch.randn(count, generator=g, dtype=F64)
+    sh = 0.4 * torch.randn(count, 16, 3, generator=g, dtype=F64)
+    means[0] = torch.tensor([0.1, 0.0, -1.0])             # behind the camera
+    means[1] = torch.tensor([0.0, 0.05, 0.1])             # in front, but nearer than the near plane
+    log_scales[2] = torch.log(torch.tensor([1.5, 1.0, 0.8]))   # huge: covers the image
+    log_scales[3] = -7.0                                   # tiny: the 0.3 px dilation is all it has
+    means[4] = torch.tensor([-0.94 * 2.0, 0.1, 2.0])       # straddling the left edge
+    means[5] = torch.tensor([0.3, 0.98 * 2.5, 2.5])        # straddling the bottom edge
+    means[6] = torch.tensor([3.5, 0.0, 2.0])               # outside, its footprint reaching in
+    for k in range(7, 11):                                 # an opaque stack over one spot
+        means[k] = torch.tensor([0.05 * k - 0.4, -0.1, 1.2 + 0.1 * k])
+        logits[k] = 6.0
+    return {"means": means, "log_scales": log_scales, "quats": quats, "opacity_logits": logits, "sh": sh}
+
+
+def both(scene: dict[str, torch.Tensor], view: G.View, background: torch.Tensor, degree: int = 3,
+         tile_size: int = 16):
+    """Images and gradients (of a fixed random linear loss) of the fast path and the reference."""
+    out = []
+    for draw in (RZ.render, REF.render_reference):
+        params = {k: v.clone().requires_grad_(True) for k, v in scene.items()}
+        image = draw(*(params[k] for k in NAMES), view, sh_degree=degree, background=background,
+                     tile_size=tile_size)
+        image = image.image if isinstance(image, RZ.Rendering) else image
+        weights = torch.randn(image.shape, generator=torch.Generator().manual_seed(5), dtype=F64)
+        if image.requires_grad:           # the reference's image of nothing drawn is a constant
+            (image * weights).sum().backward()
+        grads = {k: torch.zeros_like(p) if p.grad is None else p.grad for k, p in params.items()}
+        out.append((image.detach(), grads))
+    return out
+
+
+def assert_close_gradients(fast: dict, slow: dict) -> None:
+    for name in NAMES:
+        a, b = fast[name], slow[name]
+        assert a is not None and b is not None, name
+        bound = 1e-4 * torch.clamp(b.abs(), min=1.0)
+        assert torch.all((a - b).abs() <= bound), f"{name}: {(a - b).abs().max():.3g}"
+
+
+@pytest.mark.parametrize(("seed", "degree", "tile_size"), [(0, 3, 16), (1, 1, 8), (2, 0, 16)])
+def test_fast_rasterizer_matches_the_reference_in_image_and_every_gradient(seed, degree, tile_size):
+    view = camera()
+    background = torch.tensor([0.2, 0.5, 0.9], dtype=F64)
+    (fast_image, fast_grads), (slow_image, slow_grads) = both(random_scene(seed), view, background, degree,
+                                                              tile_size)
+    assert fast_image.shape == (26, 36, 3)
+    assert (fast_image - slow_image).abs().max() <= 1e-5
+    assert (fast_image - background).abs().max() > 0.1        # something was drawn
+    assert_close_gradients(fast_grads, slow_grads)
+    for name in NAMES:                                         # and the gradients are not trivially zero
+        assert fast_grads[name].abs().max() > 1e-3, name
+    assert torch.all(fast_grads["means"][0] == 0) and torch.all(fast_grads["means"][1] == 0)  # culled
+
+
+def test_a_camera_looking_away_renders_the_background_and_zero_gradients():
+    turned = torch.diag(torch.tensor([-1.0, 1.0, -1.0], dtype=F64))     # looking down -z
+    background = torch.tensor([0.1, 0.2, 0.3], dtype=F64)
+    scene = {k: v[1:] for k, v in random_scene(3).items()}    # all in front of camera(): behind this one
+    (image, grads), (slow, _) = both(scene, camera(R=turned), background)
+    expected = background.expand(26, 36, 3)
+    assert torch.equal(image, expected) and torch.equal(slow, expected)
+    assert all(torch.all(grads[name] == 0) for name in NAMES)
+    empty = {k: v[:0] for k, v in random_scene(3).items()}
+    assert torch.equal(RZ.render(*(empty[k] for k in NAMES), camera(), sh_degree=0,
+                                 background=background).image, expected)
+
+
+def test_a_single_isotropic_gaussian_has_its_closed_form_footprint():
+    """On the optical axis at depth d, scale s: Sigma' = ((f s / d)^2 + 0.3) I, so a pixel at distance r from
+    the principal point has alpha = o exp(-r^2 / (2 sigma'^2)) (0 below 1/255), colour C0 dc + 0.5."""
+    f, d, s, o = 30.0, 2.0, 0.1, 0.8
+    view = G.View(torch.eye(3, dtype=F64), torch.zeros(3, dtype=F64), f, f, 15.0, 14.0, 32, 32)
+    sh = torch.zeros(1, 16, 3, dtype=F64)
+    sh[0, 0] = torch.tensor([0.7, -0.3, 0.2])
+    background = torch.tensor([1.0, 1.0, 1.0], dtype=F64)
+    rendering = RZ.render(torch.tensor([[0.0, 0.0, d]], dtype=F64),
+                          torch.full((1, 3), math.log(s), dtype=F64),
+                          torch.tensor([[1.0, 0.0, 0.0, 0.0]], dtype=F64),
+                          torch.tensor([math.log(o / (1 - o))], dtype=F64), sh, view, sh_degree=0,
+                          background=background)
+    variance = (f * s / d) ** 2 + 0.3
+    v, u = np.mgrid[0:32, 0:32]
+    alpha = o * np.exp(-((u - 15.0) ** 2 + (v - 14.0) ** 2) / (2 * variance))
+    alpha[alpha < 1 / 255] = 0
+    colour = C0 * sh[0, 0].numpy() + 0.5
+    expected = alpha[..., None] * colour + (1 - alpha[..., None]) * 1.0
+    np.testing.assert_allclose(rendering.image.numpy(), expected, atol=1e-12)
+    assert int(rendering.radii[0]) == math.ceil(3 * math.sqrt(variance + math.sqrt(0.1)))
+
+
+def test_compositing_stops_before_the_gaussian_that_would_take_transmittance_below_1e_4():
+    """Three opaque Gaussians (alpha 0.99) over one pixel: after two T = 1e-4 (kept, not below), the third
+    would make it 1e-6, so the pixel ends there and the third's colour never shows."""
+    view = G.View(torch.eye(3, dtype=F64), torch.zeros(3, dtype=F64), 30.0, 30.0, 8.0, 8.0, 17, 17)
+    means = torch.tensor([[0.0, 0.0, 2.0], [0.0, 0.0, 2.5], [0.0, 0.0, 3.0]], dtype=F64)
+    sh = torch.zeros(3, 16, 3, dtype=F64)
+    sh[:, 0] = (torch.eye(3, dtype=F64) - 0.5) / C0        # red, green, blue
+    params = (means, torch.full((3, 3), -1.0, dtype=F64), torch.tensor([[1.0, 0, 0, 0]] * 3, dtype=F64),
+              torch.full((3,), 10.0, dtype=F64), sh)
+    background = torch.tensor([0.5, 0.5, 0.5], dtype=F64)
+    image = RZ.render(*params, view, sh_degree=0, background=background).image
+    slow = REF.render_reference(*params, view, sh_degree=0, background=background)
+    T1 = 1 - 0.99
+    T2 = T1 * (1 - 0.99)
+    assert T2 >= 1e-4 > T2 * (1 - 0.99)
+    np.testing.assert_allclose(image[8, 8].numpy(), np.array([0.99, 0.99 * T1, 0.0]) + T2 * 0.5, atol=1e-12)
+    assert torch.allclose(image, slow, atol=1e-12)
+
+
+def test_float32_training_path_agrees_with_the_float64_reference():
+    scene = random_scene(4)
+    view = camera()
+    background = torch.tensor([1.0, 1.0, 1.0], dtype=F64)
+    slow = REF.render_reference(*(scene[k] for k in NAMES), view, sh_degree=3, background=background)
+    view32 = G.View(view.R.float(), view.t.float(), view.fx, view.fy, view.cx, view.cy, view.width,
+                    view.height)
+    fast = RZ.render(*(scene[k].float() for k in NAMES), view32, sh_degree=3, background=background.float())
+    assert fast.image.dtype == torch.float32
+    assert (fast.image.double() - slow).abs().max() < 1e-3
+
+
+# --- the math underneath -----------------------------------------------------------------------------------
+def test_covariance_is_r_s_s_t_r_t_with_the_reference_rotation():
+    quats = torch.randn(50, 4, dtype=F64)
+    log_scales = torch.randn(50, 3, dtype=F64)
+    R = G.quaternion_rotations(quats)
+    for i in range(50):
+        np.testing.assert_allclose(R[i].numpy(), REF.rotation_reference(quats[i]).numpy(), atol=1e-12)
+    assert torch.allclose(R @ R.transpose(1, 2), torch.eye(3, dtype=F64).expand(50, 3, 3), atol=1e-12)
+    assert torch.allclose(torch.linalg.det(R), torch.ones(50, dtype=F64))
+    sigma = G.covariances(log_scales, quats)
+    eigen = torch.linalg.eigvalsh(sigma)
+    assert torch.allclose(eigen, torch.sort(torch.exp(2 * log_scales), dim=1).values, rtol=1e-9)
+
+
+def test_spherical_harmonics_are_orthonormal_on_the_sphere():
+    """Gauss-Legendre in cos(theta) times equal steps in phi integrates these degree <= 6 products exactly."""
+    nodes, weights = np.polynomial.legendre.leggauss(8)
+    phi = np.arange(16) * 2 * np.pi / 16
+    z = np.repeat(nodes, 16)
+    w = np.repeat(weights, 16) * 2 * np.pi / 16
+    rho = np.sqrt(1 - z**2)
+    directions = np.stack([rho * np.cos(np.tile(phi, 8)), rho * np.sin(np.tile(phi, 8)), z], axis=1)
+    Y = sh_basis(torch.as_tensor(directions), 3).numpy()
+    np.testing.assert_allclose(Y.T @ (w[:, None] * Y), np.eye(16), atol=1e-12)
+    np.testing.assert_allclose(Y[:, 0], C0)
+
+
+def test_colour_is_clamped_at_zero_with_no_gradient_there():
+    sh = torch.zeros(2, 1, 3, dtype=F64)
+    sh[0, 0, 0] = -10.0
+    sh.requires_grad_(True)
+    colours = sh_colors(sh, torch.tensor([[0.0, 0.0, 1.0]] * 2, dtype=F64), 0)
+    colours.sum().backward()
+    assert colours[0, 0] == 0 and colours[1, 0] == 0.5
+    assert sh.grad[0, 0, 0] == 0 and sh.grad[1, 0, 0] == pytest.approx(C0)
+
+
+def test_projection_matches_the_per_gaussian_reference():
+    scene = random_scene(6)
+    view = camera()
+    fast = G.project(scene["means"], scene["log_scales"], scene["quats"], view)
+    for i in range(len(scene["means"])):
+        one = REF.project_one_reference(scene["means"][i], scene["log_scales"][i], scene["quats"][i], view)
+        assert int(fast.radii[i]) == one.radius, i
+        if one.drawn:
+            assert tuple(fast.rects[i].tolist()) == one.rect
+            np.testing.assert_allclose(fast.means2d[i].numpy(), one.mean2d.numpy(), atol=1e-10)
+            np.testing.assert_allclose(fast.conics[i].numpy(), one.conic.numpy(), rtol=1e-9, atol=1e-12)
+    assert int(fast.radii[0]) == 0 and int(fast.radii[1]) == 0
+
+
+def test_binning_lists_each_gaussian_in_its_tiles_nearest_first():
+    rects = np.array([[0, 0, 2, 1], [1, 0, 3, 2], [0, 0, 0, 0], [2, 1, 3, 2]])
+    depths = np.array([3.0, 1.0, 0.5, 2.0])
+    binning = RZ.bin_gaussians(rects, depths, width=40, height=20, tile_size=16)
+    assert (binning.tiles_x, binning.tiles_y) == (3, 2)
+    lists = [binning.ids[a:b].tolist() for a, b in binning.ranges]
+    assert lists == [[0], [1, 0], [1], [], [1], [1, 3]]
+    assert binning.pairs == 2 + 4 + 1
+
+
+def test_too_many_tile_pairs_are_refused_by_name(monkeypatch):
+    monkeypatch.setattr(RZ, "MAX_TILE_PAIRS", 5)
+    with pytest.raises(CapacityExceeded, match="Gaussian, tile"):
+        RZ.bin_gaussians(np.array([[0, 0, 3, 2]]), np.ones(1), width=48, height=32, tile_size=16)
