@@ -23,9 +23,10 @@ from lab.modules.epipolar import (CANDIDATE_NAMES, PIPELINE, SIFT_OFFSET_PX, VIE
                                   ZeroBaseline, clip_lines, compute_epipolar_lines, correspondences,
                                   decompose_essential, detect_features, eight_point, enforce_rank2,
                                   epipolar_distances, epipolar_lines, epipoles, estimate_essential,
-                                  estimate_fundamental_8point, estimate_fundamental_ransac, match_features,
-                                  nearest_neighbours, recover_pose, refine_points, refine_pose,
-                                  sampson_distance, sampson_refit, symmetric_epipolar_distance, triangulate)
+                                  estimate_fundamental_8point, estimate_fundamental_ransac,
+                                  keypoint_locations, match_features, nearest_neighbours, recover_pose,
+                                  refine_points, refine_pose, sampson_distance, sampson_refit,
+                                  symmetric_epipolar_distance, triangulate)
 
 SAMPLES = Path(__file__).resolve().parents[2] / ".." / "shared" / "data" / "opencv-samples"
 STEPS = [spec.name for spec in PIPELINE.steps]
@@ -487,6 +488,26 @@ def test_detect_features_controls_change_the_count(leuven):
         detect_features(type(leuven.state["images"])(leuven.state["images"].images[:1]))
 
 
+def test_keypoint_locations_name_the_first_keypoint_at_each_pixel():
+    xy = np.array([[1.0, 2.0], [3.0, 4.0], [1.0, 2.0], [1.0, 2.0], [3.0, 4.0]])
+    view = np.array([0, 0, 0, 1, 1])
+    np.testing.assert_array_equal(keypoint_locations(Points2D(xy, view=view)), [0, 1, 0, 3, 4])
+    assert keypoint_locations(Points2D(np.zeros((0, 2)), view=np.zeros(0, int))).shape == (0,)
+
+
+def test_a_location_sift_repeats_is_matched_once():
+    """Two keypoints at one pixel (two orientations) whose descriptors both match the two keypoints of one
+    pixel in image 2 make one match, between the first keypoints at the two pixels."""
+    rng = np.random.default_rng(3)
+    d = rng.random((6, 128)).astype(np.float32)
+    xy1 = np.array([[10.0, 10.0], [10.0, 10.0], [50.0, 60.0]])
+    xy2 = xy1 + np.array([5.0, 0.0])
+    keypoints = Points2D(np.concatenate([xy1, xy2]), view=np.repeat([0, 1], 3))
+    descriptors = np.concatenate([d[:3], d[:3] + 0.01])
+    found = match_features(keypoints, descriptors)
+    np.testing.assert_array_equal(found.matches, [[0, 3], [2, 5]])
+
+
 def test_matching_agrees_with_bf_matcher(leuven):
     keypoints, descriptors = leuven.state["keypoints"], leuven.state["descriptors"]
     d1, d2 = descriptors[keypoints.view == 0], descriptors[keypoints.view == 1]
@@ -497,6 +518,8 @@ def test_matching_agrees_with_bf_matcher(leuven):
                 and back[m.trainIdx] == m.queryIdx}
     offset = int(np.sum(keypoints.view == 0))
     matches = leuven.state["matches"]
+    location = keypoint_locations(keypoints)  # a match is made once between two locations
+    expected = {(int(location[a]), int(location[b + offset]) - offset) for a, b in expected}
     got = {(int(a), int(b) - offset) for a, b in matches}
     assert len(got ^ expected) <= 0.01 * len(expected)  # float ties aside, the same matches
     np.testing.assert_array_equal(leuven.state["x1"], keypoints.xy[matches[:, 0]])
@@ -505,10 +528,12 @@ def test_matching_agrees_with_bf_matcher(leuven):
 def test_matching_controls(leuven):
     keypoints, descriptors = leuven.state["keypoints"], leuven.state["descriptors"]
     loose = match_features(keypoints, descriptors, ratio=1.0, mutual=False)
-    assert loose.num_matches == int(np.sum(keypoints.view == 0)) and loose.rejected_by_ratio == 0
+    assert loose.num_matches + loose.repeated == int(np.sum(keypoints.view == 0))
+    assert loose.rejected_by_ratio == 0 and loose.repeated > 0  # SIFT repeats locations (orientations)
     mutual_only = match_features(keypoints, descriptors, ratio=1.0, mutual=True)
     assert mutual_only.num_matches < loose.num_matches
-    assert mutual_only.num_matches + mutual_only.rejected_by_mutual == loose.num_matches
+    assert (mutual_only.num_matches + mutual_only.repeated + mutual_only.rejected_by_mutual
+            == loose.num_matches + loose.repeated)
     strict = match_features(keypoints, descriptors, ratio=0.6)
     assert strict.num_matches < leuven.metrics["match_features"]["num_matches"]
 

@@ -127,6 +127,23 @@ def test_model_tracks_see_each_image_once(run):
     assert np.bincount(initial[initial >= 0])[s["initial_model"].point_tracks].min() >= 3
 
 
+def test_no_two_points_share_an_observation(run):
+    """SIFT gives a location one keypoint per strong orientation; a pixel is still one observation of one
+    point (issue 19: 100 of 3980 points were exact duplicates, 934 shared a pixel with another point)."""
+    session, _ = run
+    s = session.state
+    model = s["adjusted_model"]
+    track_point = np.full(int(model.track_of.max()) + 1, -1)
+    track_point[model.point_tracks] = np.arange(len(model.points))
+    used = np.flatnonzero((model.track_of >= 0) & model.observed)
+    used = used[track_point[model.track_of[used]] >= 0]
+    kp = s["keypoints"]
+    assert len(np.unique(np.column_stack([kp.view, kp.xy]), axis=0)) < len(kp)  # the repeats are there
+    pixels = np.column_stack([kp.view[used], kp.xy[used]])
+    assert len(np.unique(pixels, axis=0)) == len(used)
+    assert len(np.unique(np.round(model.points, 9), axis=0)) == len(model.points)
+
+
 def test_without_completion_or_two_view_filter_tracks_are_shorter(run):
     session, _ = run
     s = session.state

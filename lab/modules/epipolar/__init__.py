@@ -91,7 +91,8 @@ from lab.modules.epipolar.steps import (SIFT_OFFSET_PX, EpipolarDrawing, Feature
                                         RansacFundamental, RefinedPose, TwoViewReconstruction,
                                         compute_epipolar_lines, decompose_essential, detect_features,
                                         estimate_essential, estimate_fundamental_8point,
-                                        estimate_fundamental_ransac, match_features, recover_pose,
+                                        estimate_fundamental_ransac, keypoint_locations, match_features,
+                                        recover_pose,
                                         refine_points, refine_pose, triangulate)
 
 #: State names the viewer's interactions (:mod:`lab.viewer.interactions.epipolar`) read by name.
@@ -184,6 +185,7 @@ __all__ = [
                                           "inlier_counts_reference",
                                           "inlier_mask",
                                           "inlier_mask_reference",
+                                          "keypoint_locations",
                                           "local_optimization",
                                           "local_optimization_reference",
                                           "match_features",

@@ -98,6 +98,22 @@ def detect_features(images: ImageSet, *, max_features: Annotated[int, Range(0, 5
     return FeatureDetection(keypoints, np.concatenate(descriptors), tuple(warnings), counts[0], counts[1])
 
 
+def keypoint_locations(keypoints: Points2D) -> np.ndarray:
+    """For each keypoint, the index of the first keypoint at the same pixel of the same image ``(N,)``.
+
+    SIFT gives an extremum one keypoint per orientation-histogram peak within 80% of the highest
+    (Lowe 2004, section 5), so one location may come several times, each time with another descriptor.
+    Keypoints whose entry is their own index are the locations; the others are their repeats.
+    """
+    xy = np.asarray(keypoints.xy, dtype=np.float64).reshape(-1, 2)
+    if not len(xy):
+        return np.zeros(0, dtype=np.int64)
+    view = np.zeros(len(xy)) if keypoints.view is None else np.asarray(keypoints.view, dtype=np.float64)
+    _, first, inverse = np.unique(np.column_stack([view, xy]), axis=0, return_index=True,
+                                  return_inverse=True)
+    return first[inverse.reshape(-1)].astype(np.int64)
+
+
 # ----------------------------------------------------------------------------------------------------
 # 2. Matching
 # ----------------------------------------------------------------------------------------------------
@@ -112,6 +128,7 @@ class Matching:
     num_matches: int = metric("matches kept")
     rejected_by_ratio: int = metric("nearest neighbours rejected by the ratio test")
     rejected_by_mutual: int = metric("nearest neighbours rejected by the mutual check")
+    repeated: int = metric("matches of two locations already matched (SIFT's repeated keypoints)")
 
 
 def match_features(keypoints: Points2D, descriptors: np.ndarray, *,
@@ -132,8 +149,14 @@ def match_features(keypoints: Points2D, descriptors: np.ndarray, *,
         ratio: largest allowed ratio of nearest to second-nearest distance (1: no ratio test).
         mutual: keep only matches that are each other's nearest neighbour.
 
-    Returns ``matches`` ``(M, 2)`` (indices into ``keypoints``: image 1, image 2), sorted by
-    the image-1 keypoint, and the matched pixels ``x1``, ``x2`` ``(M, 2)``.
+    SIFT may give one location several keypoints (one per strong orientation, Lowe section 5), each
+    with its own descriptor, and more than one of them may match: a match is made between locations
+    (:func:`keypoint_locations`: each keypoint stands for the first keypoint at its pixel), once, so a
+    pixel is one observation and no two tracks or triangulated points share it (issue 19: 100 of SfM's
+    3980 points were exact duplicates).
+
+    Returns ``matches`` ``(M, 2)`` (indices into ``keypoints``: image 1, image 2; the first keypoint
+    at each location), sorted by the image-1 keypoint, and the matched pixels ``x1``, ``x2`` ``(M, 2)``.
 
     Reference: D. Lowe, IJCV 60(2), 2004, section 7.1.
     """
@@ -151,18 +174,19 @@ def match_features(keypoints: Points2D, descriptors: np.ndarray, *,
     if len(index1) == 0 or len(index2) == 0:
         empty = np.zeros((0, 2))
         return Matching(np.zeros((0, 2), dtype=np.int64), empty, empty.copy(),
-                        ("no keypoints in one of the images: nothing to match",), 0, 0, 0)
+                        ("no keypoints in one of the images: nothing to match",), 0, 0, 0, 0)
     first, d1, d2, back = nearest_neighbours(descriptors[index1], descriptors[index2])
     passes_ratio = d1 < ratio * d2 if ratio < 1.0 else np.ones(len(index1), dtype=bool)
     is_mutual = back[first] == np.arange(len(index1))
     keep = passes_ratio & (is_mutual if mutual else True)
-    matches = np.column_stack([index1[keep], index2[first[keep]]]).astype(np.int64)
+    nearest = np.column_stack([index1[keep], index2[first[keep]]]).astype(np.int64)
+    matches = np.unique(keypoint_locations(keypoints)[nearest], axis=0).reshape(-1, 2)
     if len(matches) < SAMPLE_SIZE:
         warnings.append(f"only {len(matches)} matches: F needs at least {SAMPLE_SIZE}; raise the ratio or "
                         "detect more features")
     rejected_by_mutual = int(np.sum(passes_ratio & ~is_mutual)) if mutual else 0
     return Matching(matches, keypoints.xy[matches[:, 0]], keypoints.xy[matches[:, 1]], tuple(warnings),
-                    len(matches), int(np.sum(~passes_ratio)), rejected_by_mutual)
+                    len(matches), int(np.sum(~passes_ratio)), rejected_by_mutual, len(nearest) - len(matches))
 
 
 # ----------------------------------------------------------------------------------------------------

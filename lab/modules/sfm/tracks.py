@@ -16,6 +16,7 @@ from typing import Any
 import numpy as np
 
 from lab.core import Points2D
+from lab.modules import epipolar
 from lab.modules.sfm._checks import check_descriptors, keypoint_views
 from lab.modules.sfm.model import GrowingModel, observation_errors, project
 
@@ -146,13 +147,16 @@ def pair_observations(keypoints: Points2D, track_of: np.ndarray, a: int, b: int)
 
 
 def keypoint_trees(keypoints: Points2D, views: int) -> KeypointTrees:
-    """One k-d tree per image over its keypoints, with their global indices: ``{view: (tree, index)}``."""
+    """One k-d tree per image over its keypoint locations (a location SIFT gave several keypoints is in it
+    once: :func:`lab.modules.epipolar.keypoint_locations`, the keypoint matching uses), with their global
+    indices: ``{view: (tree, index)}``."""
     from scipy.spatial import cKDTree
 
     view = keypoint_views(keypoints)
+    location = epipolar.keypoint_locations(keypoints)
     trees = {}
     for v in range(views):
-        index = np.flatnonzero(view == v)
+        index = np.flatnonzero((view == v) & (location == np.arange(len(location))))
         trees[v] = (cKDTree(keypoints.xy[index] if len(index) else np.zeros((0, 2))), np.append(index, -1))
     return trees
 
