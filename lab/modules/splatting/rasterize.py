@@ -25,7 +25,7 @@ import torch
 
 from lab.core import CapacityExceeded
 from lab.core.kernels import bands, in_parallel, workers
-from lab.modules.splatting._kernels import _rasterize_backward_kernel, _rasterize_forward_kernel
+from lab.modules.splatting._kernels import _rasterize_backward_kernel, _rasterize_forward_kernel, pack_pairs
 from lab.modules.splatting.gaussians import TILE_SIZE, View, activated_opacities, project, view_colors
 
 #: Most (Gaussian, tile) pairs one image may list (about 0.5 GB of sort keys and indices).
@@ -93,25 +93,27 @@ class _Rasterize(torch.autograd.Function):
     def forward(ctx: Any, means2d: torch.Tensor, conics: torch.Tensor, colors: torch.Tensor,
                 opacities: torch.Tensor, background: torch.Tensor, binning: Binning, width: int, height: int,
                 tile_size: int) -> torch.Tensor:
-        arrays = [_numpy(t) for t in (means2d, conics, colors, opacities, background)]
-        dtype = arrays[0].dtype
-        image = np.zeros((height, width, 3), dtype)
-        final_t = np.ones((height, width), dtype)
+        mean, conic, color, opacity, bg = (_numpy(t)
+                                           for t in (means2d, conics, colors, opacities, background))
+        packed = pack_pairs(binning.ids, mean, conic, opacity)
+        arrays = (packed, color, bg)
+        image = np.zeros((height, width, 3), mean.dtype)
+        final_t = np.ones((height, width), mean.dtype)
         n_contrib = np.zeros((height, width), np.int64)
         in_parallel(_rasterize_forward_kernel,
                     [(a, b, binning.ranges, binning.ids, *arrays, tile_size, binning.tiles_x, image, final_t,
                       n_contrib) for a, b in _tile_bands(binning)])
-        ctx.arrays, ctx.binning, ctx.tile_size = arrays, binning, tile_size
+        ctx.arrays, ctx.binning, ctx.tile_size, ctx.count = arrays, binning, tile_size, len(mean)
         ctx.final_t, ctx.n_contrib = final_t, n_contrib
         return torch.from_numpy(image).to(means2d.device)
 
     @staticmethod
     def backward(ctx: Any, grad_image: torch.Tensor) -> tuple[Any, ...]:
         arrays, binning = ctx.arrays, ctx.binning
-        means2d = arrays[0]
+        dtype = arrays[0].dtype
         jobs = _tile_bands(binning)
-        grads = np.zeros((len(jobs), len(means2d), 9), means2d.dtype)
-        grad = _numpy(grad_image).astype(means2d.dtype, copy=False)
+        grads = np.zeros((len(jobs), ctx.count, 9), dtype)
+        grad = _numpy(grad_image).astype(dtype, copy=False)
         in_parallel(_rasterize_backward_kernel,
                     [(a, b, binning.ranges, binning.ids, *arrays, ctx.tile_size, binning.tiles_x, ctx.final_t,
                       ctx.n_contrib, grad, grads[j]) for j, (a, b) in enumerate(jobs)])
