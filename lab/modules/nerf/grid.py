@@ -23,15 +23,19 @@ field needs no network: trilinearly interpolated values on a grid, rendered by t
 
 from __future__ import annotations
 
+import functools
 import math
 import time
 from collections.abc import Generator
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 import torch
 
 from lab.core import Image, InvalidValue, Progress
+from lab.core.kernels import bands, in_parallel
+from lab.modules.nerf._kernels import _render_grid_backward_kernel, _render_grid_kernel
 from lab.modules.nerf.evaluate import psnr_from_mse
 from lab.modules.nerf.model import ImageRendering
 from lab.modules.nerf.rendering import PackedRendering, volume_render_packed
@@ -78,8 +82,9 @@ class GridCheckpoint:
 
 
 class GridField(torch.nn.Module):
-    """Density and colour tables ``(R^3, 1)`` and ``(R^3, 3)`` (row ``(x R + y) R + z``), sampled
-    trilinearly at normalized points."""
+    """One table ``(R^3, 4)`` (row ``(x R + y) R + z``: raw density, then raw RGB; interleaved so that a
+    vertex is one cache line for the compiled loops), sampled trilinearly at normalized points;
+    :attr:`density` ``(R^3, 1)`` and :attr:`color` ``(R^3, 3)`` are views of it."""
 
     def __init__(self, resolution: int, density: torch.Tensor | None = None,
                  color: torch.Tensor | None = None) -> None:
@@ -87,8 +92,18 @@ class GridField(torch.nn.Module):
         cells = resolution ** 3
         self.resolution = resolution
         density = torch.zeros(cells, 1) if density is None else density.reshape(cells, 1)
-        self.density = torch.nn.Parameter(density)
-        self.color = torch.nn.Parameter(torch.zeros(cells, 3) if color is None else color.reshape(cells, 3))
+        color = torch.zeros(cells, 3) if color is None else color.reshape(cells, 3)
+        self.table = torch.nn.Parameter(torch.cat([density, color.to(density)], dim=1).contiguous())
+
+    @property
+    def density(self) -> torch.Tensor:
+        """Raw densities ``(R^3, 1)`` (a view of the table)."""
+        return self.table[:, :1]
+
+    @property
+    def color(self) -> torch.Tensor:
+        """Raw colours ``(R^3, 3)`` (a view of the table)."""
+        return self.table[:, 1:]
 
     def corners(self, x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """The 8 corner rows ``(N, 8)`` of points ``x`` ``(N, 3)`` in ``[-1, 1]^3`` and their trilinear
@@ -123,35 +138,70 @@ class GridField(torch.nn.Module):
         return GridField(resolution, up(self.density, 1), up(self.color, 3)).to(self.density.device)
 
     def occupancy(self) -> Occupancy:
-        """The vertices whose density, dilated over their neighbours, is at least :data:`EMPTY_SIGMA`,
-        for sampling at :func:`grid_step`."""
+        """The vertices whose density, dilated over their 26 neighbours, is at least :data:`EMPTY_SIGMA`,
+        for sampling at :func:`grid_step` (the raw value is compared with the softplus' inverse; the
+        dilation is a maximum along each axis in turn)."""
         r = self.resolution
         with torch.no_grad():
-            sigma = torch.nn.functional.softplus(self.density.reshape(1, 1, r, r, r) + DENSITY_SHIFT)
-            cells = torch.nn.functional.max_pool3d(sigma, 3, stride=1, padding=1)[0, 0] >= EMPTY_SIGMA
+            cells = self.density.reshape(r, r, r) >= math.log(math.expm1(EMPTY_SIGMA)) - DENSITY_SHIFT
+            for axis in range(3):
+                padded = torch.nn.functional.pad(cells, _axis_pad(axis))
+                cells = padded.narrow(axis, 0, r) | padded.narrow(axis, 1, r) | padded.narrow(axis, 2, r)
         return Occupancy.of(cells, grid_step(self))
+
+
+def _axis_pad(axis: int) -> tuple[int, ...]:
+    """``torch.nn.functional.pad``'s widths that pad one vertex on both sides of ``axis`` of a 3D array."""
+    widths = [0] * 6
+    widths[2 * (2 - axis)] = widths[2 * (2 - axis) + 1] = 1
+    return tuple(widths)
 
 
 @dataclass(frozen=True, eq=False)
 class Occupancy:
-    """Which vertices of an ``R^3`` grid may hold density: ``cells`` ``(R, R, R)`` bool, and the same dilated
-    by ``reach`` vertices (``wider``, covering vertices ``-reach .. R - 1 + reach``) for the first level
-    of :func:`grid_candidates` at a given step."""
+    """Which vertices of an ``R^3`` grid may hold density: ``cells`` ``(R, R, R)`` bool, for sampling every
+    ``step`` (normalized units). What each renderer needs is derived once, when first asked for:
+    :attr:`wider` for the two levels of :func:`grid_candidates`, :attr:`box` for the compiled march."""
 
     cells: torch.Tensor
-    wider: torch.Tensor
-    reach: int
+    step: float
 
     @classmethod
     def of(cls, cells: torch.Tensor, step: float) -> Occupancy:
-        """The occupancy of ``cells`` for sampling every ``step`` (normalized units): a group of
-        :data:`GROUP` steps lies within ``(GROUP - 1) / 2`` steps of its middle, so ``reach`` is that in
-        voxels plus one (each end's nearest vertex is within half a voxel)."""
-        r = cells.shape[0]
-        reach = 1 + int((GROUP - 1) / 2 * step * (r - 1) / 2)
-        around = torch.nn.functional.pad(cells, (reach,) * 6)[None, None].float()
-        wider = torch.nn.functional.max_pool3d(around, 2 * reach + 1, stride=1, padding=reach)[0, 0] > 0
-        return cls(cells, wider, reach)
+        """The occupancy of ``cells`` for sampling every ``step``."""
+        return cls(cells, step)
+
+    @functools.cached_property
+    def reach(self) -> int:
+        """How far :attr:`wider` is dilated, in vertices: a group of :data:`GROUP` steps lies within
+        ``(GROUP - 1) / 2`` steps of its middle, so that in voxels plus one (each end's nearest vertex is
+        within half a voxel)."""
+        return 1 + int((GROUP - 1) / 2 * self.step * (self.cells.shape[0] - 1) / 2)
+
+    @functools.cached_property
+    def wider(self) -> torch.Tensor:
+        """The cells dilated by :attr:`reach` vertices, covering vertices ``-reach .. R - 1 + reach``."""
+        reach = self.reach
+        around = torch.nn.functional.pad(self.cells, (reach,) * 6)[None, None].float()
+        return torch.nn.functional.max_pool3d(around, 2 * reach + 1, stride=1, padding=reach)[0, 0] > 0
+
+    @functools.cached_property
+    def array(self) -> np.ndarray:
+        """The cells as a contiguous NumPy bool array (CPU)."""
+        return np.ascontiguousarray(self.cells.detach().cpu().numpy())
+
+    @functools.cached_property
+    def box(self) -> tuple[float, ...]:
+        """Normalized lower and upper corners of a box holding every point whose nearest vertex is occupied
+        (the occupied vertices' bounding box widened by a little over half a voxel); lower above upper
+        when none is."""
+        found = np.nonzero(self.array)
+        if len(found[0]) == 0:
+            return (1.0, 1.0, 1.0, -1.0, -1.0, -1.0)
+        voxel = 2.0 / (self.array.shape[0] - 1)
+        lower = [-1.0 + (float(axis.min()) - 0.501) * voxel for axis in found]
+        upper = [-1.0 + (float(axis.max()) + 0.501) * voxel for axis in found]
+        return (*lower, *upper)
 
 
 @dataclass(frozen=True)
@@ -238,6 +288,110 @@ def render_grid(field: GridField, origins: torch.Tensor, directions: torch.Tenso
     return out, t[keep]
 
 
+#: A ray ends once its transmittance falls below this (nerfacc's early-stop epsilon): what lies behind
+#: adds at most this much to its colour.
+STOP_BELOW = 1e-4
+
+
+@dataclass(frozen=True, eq=False)
+class GridMarch:
+    """Rays ``(R, 3)`` (float32 NumPy, CPU) and how :mod:`~lab.modules.nerf._kernels` marches them: the
+    ``shift`` ``(R,)`` of the first step (a fraction of a step), ``params`` (near, far, centre, radius, step,
+    stop), the most steps ``count`` and the occupancy ``cells`` ``(r, r, r)`` bool."""
+
+    origins: np.ndarray
+    directions: np.ndarray
+    shift: np.ndarray
+    params: np.ndarray
+    count: int
+    cells: np.ndarray
+    background: np.ndarray
+
+    @classmethod
+    def of(cls, field: GridField, origins: torch.Tensor, directions: torch.Tensor, bounds: SceneBounds, *,
+           background: torch.Tensor, occupied: Occupancy | None, jitter: torch.Tensor | None = None,
+           stop: float = STOP_BELOW) -> GridMarch:
+        """The march of :func:`grid_candidates` at :func:`grid_step` (``occupied`` None: every vertex of the
+        field; ``jitter`` None: half a step) ending at transmittance ``stop``."""
+        o = origins.detach().cpu().numpy().astype(np.float32, copy=False)
+        d = directions.detach().cpu().numpy().astype(np.float32, copy=False)
+        step = grid_step(field)
+        depth_step = step * bounds.radius / np.linalg.norm(d.astype(np.float64), axis=-1)
+        count = math.ceil((bounds.far - bounds.near) / float(depth_step.min())) if len(d) else 0
+        shift = np.full(len(o), 0.5, np.float32) if jitter is None else \
+            jitter.detach().cpu().numpy().reshape(-1).astype(np.float32)
+        if occupied is None:
+            occupied = Occupancy.of(torch.ones((field.resolution,) * 3, dtype=torch.bool), step)
+        centre = np.asarray(bounds.center, dtype=np.float64).reshape(3)
+        params = np.array([bounds.near, bounds.far, *centre, bounds.radius, step, stop, *occupied.box],
+                          dtype=np.float64)
+        return cls(np.ascontiguousarray(o), np.ascontiguousarray(d), shift, params, count, occupied.array,
+                   background.detach().cpu().numpy().astype(np.float32))
+
+
+def _table(field: GridField) -> np.ndarray:
+    """The field's raw table ``(N, 4)`` as a float32 NumPy view (CPU)."""
+    return np.ascontiguousarray(field.table.detach().cpu().numpy())
+
+
+def composite_grid(field: GridField, march: GridMarch, *, threads: int = 1) -> PackedRendering:
+    """Render the rays of ``march`` through the field without gradient, by the compiled per-ray loop
+    (:mod:`~lab.modules.nerf._kernels`: march, skip empty space, trilinear density and colour, composite
+    front to back, stop at transmittance ``stop``), ``threads`` bands of rays at a time. Returns colour
+    ``(R, 3)``, depth and opacity ``(R,)`` and, in ``weights``, the samples each ray used ``(R,)``.
+    Oracle: :func:`~lab.modules.nerf.reference.composite_grid_reference`."""
+    rays = len(march.origins)
+    table = _table(field)
+    colors, depth = np.empty((rays, 3), np.float32), np.empty(rays, np.float32)
+    opacity, used = np.empty(rays, np.float32), np.empty(rays, np.int32)
+    jobs = [(table, field.resolution, march.cells, march.origins, march.directions, march.shift,
+             march.params, march.count, march.background, colors, depth, opacity, used, a, b)
+            for a, b in bands(rays, parts=threads)] if rays else []
+    in_parallel(_render_grid_kernel, jobs)
+    return PackedRendering(torch.from_numpy(colors), torch.from_numpy(depth), torch.from_numpy(opacity),
+                           torch.from_numpy(used))
+
+
+class CompositeGrid(torch.autograd.Function):
+    """:func:`composite_grid`'s colour ``(R, 3)`` (and samples used) as a function of the raw table, with its
+    gradient from
+    the compiled backward pass (``_render_grid_backward_kernel``: each ray marched again)."""
+
+    @staticmethod
+    def forward(ctx: Any, table: torch.Tensor, field: GridField,
+                march: GridMarch) -> tuple[torch.Tensor, torch.Tensor]:
+        out = composite_grid(field, march)
+        ctx.field, ctx.march = field, march
+        ctx.rendered = out.color.numpy()
+        ctx.mark_non_differentiable(out.weights)
+        return out.color, out.weights
+
+    @staticmethod
+    def backward(ctx: Any, grad: torch.Tensor, _: Any) -> tuple[torch.Tensor, None, None]:
+        field, march = ctx.field, ctx.march
+        table = _table(field)
+        grad_table = np.zeros_like(table)
+        _render_grid_backward_kernel(table, field.resolution, march.cells, march.origins, march.directions,
+                                     march.shift, march.params, march.count, ctx.rendered,
+                                     np.ascontiguousarray(grad.numpy(), dtype=np.float32), grad_table)
+        return torch.from_numpy(grad_table), None, None
+
+
+def batch_colors(field: GridField, origins: torch.Tensor, directions: torch.Tensor, bounds: SceneBounds, *,
+                 background: torch.Tensor, occupied: Occupancy | None,
+                 jitter: torch.Tensor) -> tuple[torch.Tensor, int]:
+    """A training batch's rendered colours ``(R, 3)`` (with gradient to the tables) and the samples
+    evaluated: on the CPU by the compiled loop (:class:`CompositeGrid`), elsewhere by :func:`render_grid`."""
+    if field.density.device.type == "cpu":
+        march = GridMarch.of(field, origins, directions, bounds, background=background, occupied=occupied,
+                             jitter=jitter)
+        color, used = CompositeGrid.apply(field.table, field, march)
+        return color, int(used.sum())
+    out, kept = render_grid(field, origins, directions, bounds, step=grid_step(field), background=background,
+                            occupied=occupied, jitter=jitter)
+    return out.color, len(kept)
+
+
 def _adam(field: GridField, learning_rate: float) -> torch.optim.Adam:
     """Adam on the grid; the fused CPU / CUDA kernel (one pass over the tables) where torch has it."""
     try:
@@ -280,15 +434,15 @@ def train_grid_field(rays: RayBundle, options: GridOptions, *, background: torch
             group["lr"] = options.learning_rate * 0.1 ** min(spent, 1.0)
         batch = torch.randint(len(origins), (options.batch_rays,), generator=generator).to(device)
         jitter = torch.rand((options.batch_rays, 1), generator=generator).to(device)
-        out, kept = render_grid(field, origins[batch], directions[batch], rays.bounds, step=grid_step(field),
-                                 background=background, occupied=occupied, jitter=jitter)
-        mse = torch.mean((out.color - colors[batch]) ** 2)
+        color, used = batch_colors(field, origins[batch], directions[batch], rays.bounds,
+                                   background=background, occupied=occupied, jitter=jitter)
+        mse = torch.mean((color - colors[batch]) ** 2)
         optimizer.zero_grad(set_to_none=True)
         mse.backward()
         optimizer.step()
         losses.append(float(mse.detach()))
         psnrs.append(psnr_from_mse(losses[-1]))
-        evaluated.append(len(kept))
+        evaluated.append(used)
         elapsed += time.perf_counter() - tick
         done = len(losses)
         last = done == options.iterations or 0 < budget <= elapsed
@@ -319,16 +473,23 @@ def render_grid_image(field: GridField, origins: torch.Tensor, directions: torch
                       chunk: int = 4096) -> ImageRendering:
     """Render one view's rays ``(H * W, 3)`` (row-major) through the grid, no jitter, no gradient, with the
     field's occupancy; :class:`~lab.modules.nerf.model.ImageRendering` of ``shape = (H, W)``."""
-    colors, depths, opacities = [], [], []
+    height, width = shape
     with torch.no_grad():
         occupied = field.occupancy()
+        if field.density.device.type == "cpu":
+            march = GridMarch.of(field, origins, directions, bounds, background=background, occupied=occupied)
+            out = composite_grid(field, march, threads=torch.get_num_threads())
+            return ImageRendering(out.color.clamp(0, 1).reshape(height, width, 3).numpy(),
+                                  out.depth.reshape(height, width).numpy(),
+                                  out.opacity.reshape(height, width).numpy())
+    colors, depths, opacities = [], [], []
+    with torch.no_grad():
         for start in range(0, len(origins), chunk):
             out, _ = render_grid(field, origins[start:start + chunk], directions[start:start + chunk], bounds,
                                  step=grid_step(field), background=background, occupied=occupied)
             colors.append(out.color)
             depths.append(out.depth)
             opacities.append(out.opacity)
-    height, width = shape
     return ImageRendering(torch.cat(colors).clamp(0, 1).reshape(height, width, 3).cpu().numpy(),
                           torch.cat(depths).reshape(height, width).cpu().numpy(),
                           torch.cat(opacities).reshape(height, width).cpu().numpy())

@@ -4,7 +4,8 @@ Each ``x_reference`` computes what the public vectorized torch function ``x`` co
 plain Python loops (one camera, ray, sample or frequency at a time), slowly, in float64, written as the
 paper writes it (Mildenhall et al. 2020): products where the fast code uses sums of logarithms,
 explicit searches where it uses ``searchsorted``. ``grid_candidates_reference`` is the direct version of
-the grid's two-level search (dense torch arrays: every step of every ray).
+the grid's two-level search (dense torch arrays: every step of every ray); ``composite_grid_reference``
+is the grid's compiled march-and-composite loop (:mod:`lab.modules.nerf._kernels`) written plainly.
 """
 
 from __future__ import annotations
@@ -133,5 +134,55 @@ def grid_candidates_reference(origins: torch.Tensor, directions: torch.Tensor, b
     return ray, t_k, x[ray, column], delta
 
 
-__all__ = ["camera_rays_reference", "grid_candidates_reference", "positional_encoding_reference",
-           "sample_pdf_reference", "stratified_samples_reference", "volume_render_reference"]
+def composite_grid_reference(density: np.ndarray, color: np.ndarray, cells: np.ndarray, origins: np.ndarray,
+                             directions: np.ndarray, shift: np.ndarray, bounds: Any, step: float, stop: float,
+                             background: np.ndarray) -> dict[str, np.ndarray]:
+    """:func:`~lab.modules.nerf.grid.composite_grid` one ray and one step at a time: walk every step
+    ``t = near + (k + shift) s`` (``s = step radius / |d|``) before far, look up the occupancy vertex nearest
+    the normalized point, interpolate the raw ``density`` ``(R, R, R)`` and ``color`` ``(R, R, R, 3)``
+    trilinearly between the 8 vertices around it, ``sigma = softplus(raw - 5)``, ``c = sigmoid(raw)``, and
+    composite with the product form of eq. 3 until the transmittance falls below ``stop``. Returns colour
+    ``(N, 3)``, depth, opacity and samples used ``(N,)``, float64."""
+    r, side = density.shape[0], cells.shape[0]
+    centre = np.asarray(bounds.center, dtype=np.float64)
+    out = {"color": np.zeros((len(origins), 3)), "depth": np.zeros(len(origins)),
+           "opacity": np.zeros(len(origins)), "samples": np.zeros(len(origins))}
+    for n, (o, d) in enumerate(zip(origins.astype(np.float64), directions.astype(np.float64), strict=True)):
+        norm = float(np.linalg.norm(d))
+        depth_step = step * bounds.radius / norm
+        transmittance, k = 1.0, 0
+        while transmittance >= stop:
+            t = bounds.near + (k + float(shift[n])) * depth_step
+            k += 1
+            if t >= bounds.far:
+                break
+            x = (o + t * d - centre) / bounds.radius
+            nearest = np.round((x + 1.0) * 0.5 * (side - 1)).astype(int)
+            if np.any(nearest < 0) or np.any(nearest >= side) or not cells[tuple(nearest)]:
+                continue
+            g = (x + 1.0) * 0.5 * (r - 1)
+            base = np.clip(np.floor(g), 0, r - 2).astype(int)
+            f = g - base
+            raw, rgb_raw = 0.0, np.zeros(3)
+            for corner in np.ndindex(2, 2, 2):
+                weight = math.prod(f[a] if corner[a] else 1.0 - f[a] for a in range(3))
+                vertex = tuple(base + np.array(corner))
+                raw += weight * float(density[vertex])
+                rgb_raw += weight * color[vertex].astype(np.float64)
+            sigma = math.log1p(math.exp(raw - 5.0))
+            rgb = 1.0 / (1.0 + np.exp(-rgb_raw))
+            alpha = 1.0 - math.exp(-sigma * min(depth_step, bounds.far - t) * norm)
+            weight = transmittance * alpha
+            out["color"][n] += weight * rgb
+            out["depth"][n] += weight * t
+            out["opacity"][n] += weight
+            out["samples"][n] += 1
+            transmittance *= 1.0 - alpha
+        out["color"][n] += transmittance * np.asarray(background, dtype=np.float64)
+        out["depth"][n] += transmittance * bounds.far
+    return out
+
+
+__all__ = ["camera_rays_reference", "composite_grid_reference", "grid_candidates_reference",
+           "positional_encoding_reference", "sample_pdf_reference", "stratified_samples_reference",
+           "volume_render_reference"]
