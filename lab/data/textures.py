@@ -130,18 +130,13 @@ def image_file(*, path: str, max_size: Annotated[int, Range(8, 1024)] = 128, tar
         target: the picture texture transfer redraws with the sample (made colour for a colour sample).
         target_size: side of the transfer target in pixels.
     """
-    from lab.data.files import read_images
+    from lab.data.files import read_working_images
 
     path = os.path.expanduser(str(path))
     if not path or not os.path.isfile(path):
         raise InvalidValue("path", f"no image file {path!r}")
-    (image,) = read_images([path])
+    (image,) = read_working_images([path], max_side=int(max_size)).images
     pixels = image.pixels
-    longest = max(pixels.shape[:2])
-    if longest > int(max_size):
-        scale = int(max_size) / longest
-        pixels = _resize(pixels, max(1, round(pixels.shape[0] * scale)),
-                         max(1, round(pixels.shape[1] * scale)))
     colour = pixels.ndim == 3
     return Loaded(state={"sample": Image(pixels, name=os.path.basename(path)),
                          "transfer_target": transfer_target(target, int(target_size), colour=colour)},

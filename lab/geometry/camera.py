@@ -66,6 +66,17 @@ def as_intrinsics(K: object) -> np.ndarray:
     return K
 
 
+def scale_intrinsics(K: np.ndarray, scale: float) -> np.ndarray:
+    """``K`` ``(3, 3)`` of the image resized by ``scale`` (a copy): focal lengths and skew times ``scale``,
+    the principal point ``c' = (c + 0.5) scale - 0.5`` (pixel centres at integer coordinates, the lab's
+    convention: the image's edge ``-0.5`` stays its edge)."""
+    out = np.array(K, dtype=np.float64)
+    if scale != 1.0:
+        out[:2, :2] *= scale
+        out[:2, 2] = (out[:2, 2] + 0.5) * scale - 0.5
+    return out
+
+
 def pixels_to_normalized(pixels: np.ndarray, K: np.ndarray) -> np.ndarray:
     """Apply ``K^-1`` to pixels ``(..., 2)`` (skew included): the (distorted) normalized coordinates."""
     K = as_intrinsics(K)
@@ -290,5 +301,5 @@ def optimal_new_camera_matrix(K: np.ndarray, dist: np.ndarray | None, size: tupl
 
 __all__ = ["DISTORTION_NAMES", "as_distortion", "as_intrinsics", "distort", "distort_components",
            "distort_with_jacobians", "normalized_to_pixels", "optimal_new_camera_matrix",
-           "pixels_to_normalized", "project", "project_points", "transform_points", "undistort",
-           "undistort_pixels", "undistortion_map"]
+           "pixels_to_normalized", "project", "project_points", "scale_intrinsics", "transform_points",
+           "undistort", "undistort_pixels", "undistortion_map"]

@@ -17,6 +17,7 @@ import numpy as np
 
 from lab.core import Image, ImageSet, InvalidValue, Loaded, Points2D, Range
 from lab.core.budgets import check_dataset_pixels
+from lab.data.files import WORKING_SIDE
 from lab.geometry.camera import as_distortion, project_points
 from lab.geometry.rotations import rotvec_to_matrix
 from lab.modules.calibration.board import Checkerboard
@@ -215,8 +216,14 @@ def sample_poses(board: Checkerboard, K: np.ndarray, dist: np.ndarray, width: in
 
 
 def folder(*, path: str, columns: Annotated[int, Range(2, 100)] = 9, rows: Annotated[int, Range(2, 100)] = 6,
-           square_size: Annotated[float, Range(1e-6, 100.0)] = 0.025, pattern: str = "*") -> Loaded:
+           square_size: Annotated[float, Range(1e-6, 100.0)] = 0.025, pattern: str = "*",
+           max_side: Annotated[int, Range(0, 16384)] = WORKING_SIDE) -> Loaded:
     """A folder of checkerboard photos (any format OpenCV reads), sorted by file name; no truth.
+
+    Photos larger than the working size are read at it (:func:`lab.data.files.read_working_images`):
+    the calibration's K is then that of the working-size images (the description says so; for the
+    files' pixels use :func:`lab.geometry.camera.scale_intrinsics` with ``1 / scale``, or
+    ``max_side=0``).
 
     Args:
         path: the folder that holds the photos.
@@ -225,18 +232,22 @@ def folder(*, path: str, columns: Annotated[int, Range(2, 100)] = 9, rows: Annot
         square_size: side of a square in metres.
         pattern: shell pattern of the file names to read (e.g. ``left*.jpg``); files that are not
             images are skipped.
+        max_side: read the photos at a working size whose longer side is at most this many pixels
+            (:data:`lab.data.files.WORKING_SIDE`; 0: full resolution).
     """
-    from lab.data.files import IMAGE_SUFFIXES, list_images, read_images
+    from lab.data.files import IMAGE_SUFFIXES, list_images, read_working_images
 
     board = Checkerboard(columns, rows, square_size)
     files = list_images(path, pattern)
     if not files:
         raise InvalidValue("path", f"folder {path!r} holds no images matching {pattern!r} "
                                    f"(readable endings: {', '.join(IMAGE_SUFFIXES)})")
-    images = read_images(files)
-    description = (f"{len(images)} photos from {path} ({columns}x{rows} inner corners, "
+    read = read_working_images(files, max_side=int(max_side))
+    description = (f"{len(read.images)} photos from {path} ({columns}x{rows} inner corners, "
                    f"{square_size * 1000:g} mm squares)")
-    return Loaded({"images": ImageSet(tuple(images)), "board": board}, {}, description)
+    if read.note:
+        description += f"; {read.note}: K is estimated for the working size"
+    return Loaded({"images": ImageSet(read.images), "board": board}, {}, description)
 
 
 __all__ = ["MIN_CORNERS_KEPT", "folder", "partial_corners", "sample_poses", "synthetic"]

@@ -24,9 +24,9 @@ import numpy as np
 
 from lab.core import Image, ImageSet, InvalidValue, Loaded, Range
 from lab.core.budgets import check_dataset_pixels
-from lab.data.files import check_folder, list_images, read_images
+from lab.data.files import WORKING_SIDE, check_folder, list_images, read_working_images
 from lab.data.two_view import correspondences, intrinsics
-from lab.geometry.camera import project_points
+from lab.geometry.camera import project_points, scale_intrinsics
 from lab.geometry.rotations import look_at, skew
 from lab.geometry.two_view import fundamental_from_pose
 
@@ -162,7 +162,7 @@ def read_k_file(file: str) -> tuple[tuple[str, str], np.ndarray]:
 
 def photos(*, path: str, pattern: str = "*", k_file: str = "", fx: Annotated[float, Range(0.0, 1e6)] = 0.0,
            fy: Annotated[float, Range(0.0, 1e6)] = 0.0, cx: float = -1.0, cy: float = -1.0,
-           max_side: Annotated[int, Range(0, 16384)] = 0) -> Loaded:
+           max_side: Annotated[int, Range(0, 16384)] = WORKING_SIDE) -> Loaded:
     """A user's two photos of one scene and, optionally, their camera matrix; no truth.
 
     The photos are the two images in the folder that match ``pattern``, sorted by name, or the two
@@ -182,11 +182,9 @@ def photos(*, path: str, pattern: str = "*", k_file: str = "", fx: Annotated[flo
         fy: focal length along y in pixels (0: same as fx).
         cx: principal point x in pixels (negative: the image centre).
         cy: principal point y in pixels (negative: the image centre).
-        max_side: shrink both photos so their longer side is at most this many pixels (0: keep), K
-            scaled with them.
+        max_side: read the photos at a working size whose longer side is at most this many pixels
+            (:data:`lab.data.files.WORKING_SIDE`; 0: full resolution), K scaled with them.
     """
-    import cv2
-
     check_folder(path)
     names: tuple[str, str] | None = None
     K_file = None
@@ -203,16 +201,8 @@ def photos(*, path: str, pattern: str = "*", k_file: str = "", fx: Annotated[flo
         if len(files) != 2:
             raise InvalidValue("path", f"folder {path!r} holds {len(files)} images matching {pattern!r}; two "
                                        "are needed (narrow the pattern, or name them in a k_file)")
-    images = read_images(files)
-    scales = [1.0, 1.0]
-    if max_side:
-        for i, image in enumerate(images):
-            scale = min(1.0, max_side / max(image.width, image.height))
-            if scale < 1.0:
-                size = (max(1, round(image.width * scale)), max(1, round(image.height * scale)))
-                pixels = cv2.resize(image.pixels, size, interpolation=cv2.INTER_AREA)
-                images[i] = Image(np.clip(pixels, 0.0, 1.0), name=image.name)
-                scales[i] = size[0] / image.width
+    read = read_working_images(files, max_side=int(max_side))
+    images, scales = list(read.images), list(read.scales)
     sizes = [(im.width, im.height) for im in images]
     state: dict[str, Any] = {"images": ImageSet(tuple(images))}
     if K_file is not None:
@@ -220,8 +210,7 @@ def photos(*, path: str, pattern: str = "*", k_file: str = "", fx: Annotated[flo
         source = f"K from {k_file}"
     elif fx > 0:
         Ks = [intrinsics(fx, fy if fy > 0 else fx, cx if cx >= 0 else (w - 1) / 2,
-                         cy if cy >= 0 else (h - 1) / 2)
-              for (w, h) in [(im.width / s, im.height / s) for im, s in zip(images, scales, strict=True)]]
+                         cy if cy >= 0 else (h - 1) / 2) for (w, h) in read.original_sizes]
         source = "K from the options"
     elif sizes[0] == sizes[1]:
         w, h = sizes[0]
@@ -234,20 +223,11 @@ def photos(*, path: str, pattern: str = "*", k_file: str = "", fx: Annotated[flo
         source = (f"no K: the photos differ in size ({sizes[0][0]}x{sizes[0][1]} and "
                   f"{sizes[1][0]}x{sizes[1][1]}), so only F can be estimated")
     for name, K, scale in zip(("K1", "K2"), Ks, scales, strict=False):  # no Ks: no K1, K2
-        state[name] = _scaled_intrinsics(K, scale)
+        state[name] = scale_intrinsics(K, scale)
     description = f"Two photos from {path}: {images[0].name}, {images[1].name}; {source}"
+    if read.note:
+        description += f"; {read.note}"
     return Loaded(state, {}, description)
-
-
-def _scaled_intrinsics(K: np.ndarray, scale: float) -> np.ndarray:
-    """K of an image resized by ``scale`` (pixel centres at integer coordinates: ``c' = (c + 0.5) s - 0.5``).
-    """
-    if scale == 1.0:
-        return np.array(K, dtype=np.float64)
-    out = np.array(K, dtype=np.float64)
-    out[:2, :2] *= scale
-    out[:2, 2] = (out[:2, 2] + 0.5) * scale - 0.5
-    return out
 
 
 __all__ = ["correspondences", "photos", "read_k_file", "rendered"]

@@ -25,8 +25,9 @@ import numpy as np
 
 from lab.core import Image, ImageSet, InvalidValue, Loaded, Points2D, Range
 from lab.core.budgets import check_dataset_pixels
-from lab.data.files import check_folder, list_images, read_images
+from lab.data.files import WORKING_SIDE, check_folder, list_images, read_working_images
 from lab.data.matchfile import MatchFiles, read_match_files
+from lab.geometry.camera import scale_intrinsics
 
 #: 35 mm film diagonal, millimetres (EXIF ``FocalLengthIn35mmFilm`` is relative to it).
 FILM_DIAGONAL_MM = float(np.hypot(36.0, 24.0))
@@ -221,35 +222,9 @@ def _intrinsics(fx: float, fy: float, cx: float, cy: float) -> np.ndarray:
     return np.array([[fx, 0.0, cx], [0.0, fy, cy], [0.0, 0.0, 1.0]])
 
 
-def _resized(images: list[Image], files: list[str], max_side: int) -> tuple[list[Image], list[float]]:
-    import cv2
-
-    scales = []
-    out = []
-    for image in images:
-        scale = min(1.0, max_side / max(image.width, image.height)) if max_side else 1.0
-        if scale < 1.0:
-            size = (max(1, round(image.width * scale)), max(1, round(image.height * scale)))
-            pixels = cv2.resize(image.pixels, size, interpolation=cv2.INTER_AREA)
-            out.append(Image(np.clip(pixels, 0.0, 1.0), name=image.name))
-            scales.append(size[0] / image.width)
-        else:
-            out.append(image)
-            scales.append(1.0)
-    return out, scales
-
-
-def _scaled(K: np.ndarray, scale: float) -> np.ndarray:
-    out = np.array(K, dtype=np.float64)
-    if scale != 1.0:
-        out[:2, :2] *= scale
-        out[:2, 2] = (out[:2, 2] + 0.5) * scale - 0.5
-    return out
-
-
 def photos(*, path: str, pattern: str = "*", k_file: str = "", fx: Annotated[float, Range(0.0, 1e6)] = 0.0,
            fy: Annotated[float, Range(0.0, 1e6)] = 0.0, cx: float = -1.0, cy: float = -1.0,
-           max_side: Annotated[int, Range(0, 16384)] = 0) -> Loaded:
+           max_side: Annotated[int, Range(0, 16384)] = WORKING_SIDE) -> Loaded:
     """A user's photos of one scene (at least two) and their camera matrix; no truth.
 
     ``K`` comes from ``k_file`` (a file in the folder whose last three rows of numbers are K, e.g.
@@ -266,8 +241,8 @@ def photos(*, path: str, pattern: str = "*", k_file: str = "", fx: Annotated[flo
         fy: focal length along y in pixels (0: same as fx).
         cx: principal point x in pixels (negative: the image centre).
         cy: principal point y in pixels (negative: the image centre).
-        max_side: shrink the photos so their longer side is at most this many pixels (0: keep), K
-            scaled with them.
+        max_side: read the photos at a working size whose longer side is at most this many pixels
+            (:data:`lab.data.files.WORKING_SIDE`; 0: full resolution), K scaled with them.
     """
     check_folder(path)
     files = list_images(path, pattern)
@@ -275,20 +250,20 @@ def photos(*, path: str, pattern: str = "*", k_file: str = "", fx: Annotated[flo
         raise InvalidValue("path",
                            f"folder {path!r} holds {len(files)} images matching {pattern!r}; structure from "
                            "motion needs at least two")
-    originals = read_images(files)
-    images, scales = _resized(originals, files, int(max_side))
+    read = read_working_images(files, max_side=int(max_side))
+    images, scales = list(read.images), read.scales
     Ks = []
     if k_file:
         if os.sep in k_file or (os.altsep and os.altsep in k_file) or k_file in (".", ".."):
             raise InvalidValue("k_file", f"must be a file name inside the folder, got {k_file!r}")
         K = read_k_matrix(os.path.join(path, k_file))
-        Ks = [_scaled(K, s) for s in scales]
+        Ks = [scale_intrinsics(K, s) for s in scales]
         source = f"K from {k_file}"
     elif fx > 0:
-        for image, s in zip(originals, scales, strict=True):
-            K = _intrinsics(fx, fy if fy > 0 else fx, cx if cx >= 0 else (image.width - 1) / 2,
-                            cy if cy >= 0 else (image.height - 1) / 2)
-            Ks.append(_scaled(K, s))
+        for (width, height), s in zip(read.original_sizes, scales, strict=True):
+            K = _intrinsics(fx, fy if fy > 0 else fx, cx if cx >= 0 else (width - 1) / 2,
+                            cy if cy >= 0 else (height - 1) / 2)
+            Ks.append(scale_intrinsics(K, s))
         source = "K from the options"
     else:
         from_exif = 0
@@ -304,6 +279,8 @@ def photos(*, path: str, pattern: str = "*", k_file: str = "", fx: Annotated[flo
     image_set = ImageSet(tuple(images))
     K = check_intrinsics(np.stack(Ks), image_set)
     description = f"{len(images)} photos from {path}; {source}"
+    if read.note:
+        description += f"; {read.note}"
     return Loaded({"images": image_set, "K": K}, {}, description)
 
 
