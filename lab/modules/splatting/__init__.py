@@ -12,10 +12,37 @@ The package (this file is its only import surface):
     rasterize.py   the fast rasterizer: tile binning, depth sort, compiled compositing and its backward
     _kernels.py    the compiled compositing loops (private)
     reference.py   the readable per-Gaussian, per-pixel rasterizer in torch autograd: the tests' oracle
+    values.py      SplatModel: the Gaussians' raw parameters between steps (drawn as GaussianSplats)
+    losses.py      0.8 L1 + 0.2 D-SSIM
+    density.py     Adam with per-parameter learning rates; clone, split, prune, opacity reset
+    training.py    the training loop (a generator yielding progress and previews)
+    steps.py       the steps in pipeline order
+    ply.py         the standard 3D Gaussian splatting PLY (the INRIA layout), written and read
+Datasets and evaluation are the NeRF module's (the same scenes, the same held-out PSNR and SSIM).
+
+State names:
+    images, cameras, test_cameras, bounds   the NeRF module's datasets' (training views, held-out poses)
+    gaussians       SplatModel      the initial Gaussians
+    initial_splats  GaussianSplats  them, drawn
+    model           SplatModel      the trained Gaussians
+    splats          GaussianSplats  them, drawn
+    loss_curve, psnr_curve  Curve   the loss and the training-view PSNR over iterations
+    density_curve   Curve           cloned, split, pruned and held Gaussians per density control
+    preview         Image           training view 0 rendered by the trained Gaussians
+    test_renders    ImageSet        every held-out view rendered
+    rendered        Image           one held-out view
+Truth: ``test_images`` ``(V, H, W, 3)`` (the NeRF module's datasets).
 """
 
 from __future__ import annotations
 
+from collections.abc import Mapping
+from pathlib import Path
+from typing import Any
+
+from lab.core import Export, Pipeline
+from lab.modules.nerf import EVALUATIONS, nerf_synthetic, synthetic_object
+from lab.modules.splatting.density import LEARNING_RATES, DensityEvent, TrainedGaussians, position_lr
 from lab.modules.splatting.gaussians import (DILATION, NEAR_PLANE, TILE_SIZE, Projected, View,
                                              activated_opacities, covariances, image_covariances, project,
                                              quaternion_rotations, tile_rects, view_colors, view_of)
@@ -23,12 +50,45 @@ from lab.modules.splatting.rasterize import (MAX_TILE_PAIRS, Binning, Rendering,
                                              rasterize_image, render)
 from lab.modules.splatting.reference import (GaussianInImage, composite_pixel_reference,
                                              project_one_reference, render_reference, rotation_reference)
+from lab.modules.splatting.ply import PROPERTIES, ply_vertices, read_ply, write_ply
+from lab.modules.splatting.losses import SSIM_WEIGHT, photometric_loss, ssim
 from lab.modules.splatting.sh import MAX_SH_DEGREE, rgb_to_sh, sh_basis, sh_colors, sh_count, sh_to_rgb
+from lab.modules.splatting.steps import (initial_model, initialize_gaussians, render_held_out, render_model,
+                                         render_view, train_splats)
+from lab.modules.splatting.training import SplatTrainingOptions, scene_extent, train_gaussians
+from lab.modules.splatting.values import MAX_GAUSSIANS, SplatModel, as_model, model_from_tensors
+
+
+
+def _export_ply(state: Mapping[str, Any], metrics: Mapping[str, Mapping[str, Any]], out: Path) -> Path:
+    return write_ply(as_model(state["model"], "model"), out)
+
+
+PIPELINE = Pipeline.build(
+    name="splatting",
+    title="Gaussian splatting",
+    summary="3D Gaussian splatting step by step on a CPU: Gaussians started at random points of the scene, "
+            "projected with the Jacobian of the perspective map, sorted per tile and composited front to "
+            "back by a differentiable tile rasterizer, trained with L1 + D-SSIM and adaptive density "
+            "control (clone, split, prune), then held-out views rendered and compared (PSNR, SSIM) on the "
+            "NeRF module's scenes.",
+    steps=[initialize_gaussians, train_splats, render_held_out, render_view],
+    datasets=[synthetic_object, nerf_synthetic],
+    evaluations=EVALUATIONS,
+    exports=[Export("ply", "the trained Gaussians as a 3D Gaussian splatting PLY (the INRIA layout splat "
+                           "viewers read)", ("model",), _export_ply)],
+    views=["model", "test_cameras", "bounds"],
+)
 
 __all__ = [
-    "DILATION", "MAX_SH_DEGREE", "MAX_TILE_PAIRS", "NEAR_PLANE", "TILE_SIZE", "Binning", "GaussianInImage",
-    "Projected", "Rendering", "View", "activated_opacities", "bin_gaussians", "composite_pixel_reference",
-    "covariances", "image_covariances", "project", "project_one_reference", "quaternion_rotations",
-    "rasterize_image", "render", "render_reference", "rgb_to_sh", "rotation_reference", "sh_basis",
-    "sh_colors", "sh_count", "sh_to_rgb", "tile_rects", "view_colors", "view_of",
+    "DILATION", "LEARNING_RATES", "MAX_GAUSSIANS", "MAX_SH_DEGREE", "MAX_TILE_PAIRS", "NEAR_PLANE",
+    "PIPELINE", "PROPERTIES", "SSIM_WEIGHT", "TILE_SIZE", "Binning", "DensityEvent", "GaussianInImage",
+    "Projected", "Rendering", "SplatModel", "SplatTrainingOptions", "TrainedGaussians", "View",
+    "activated_opacities", "as_model", "bin_gaussians", "composite_pixel_reference", "covariances",
+    "image_covariances", "initial_model", "initialize_gaussians", "model_from_tensors", "photometric_loss",
+    "ply_vertices", "position_lr", "project", "project_one_reference", "quaternion_rotations",
+    "rasterize_image", "read_ply", "render", "render_held_out", "render_model", "render_reference",
+    "render_view", "rgb_to_sh", "rotation_reference", "scene_extent", "sh_basis", "sh_colors", "sh_count",
+    "sh_to_rgb", "ssim", "tile_rects", "train_gaussians", "train_splats", "view_colors", "view_of",
+    "write_ply",
 ]

@@ -1,0 +1,265 @@
+"""The steps of the Gaussian splatting module, in pipeline order: each reads state by name and returns what
+it writes.
+
+1. :func:`initialize_gaussians`  random points in the scene box, scaled by their neighbours' distances
+2. :func:`train_splats`          the Gaussians fitted to the training views (a generator step)
+3. :func:`render_held_out`       the held-out views rendered (evaluated: PSNR, SSIM, by the NeRF module's
+                                 evaluation)
+4. :func:`render_view`           one held-out view
+
+Reference: B. Kerbl, G. Kopanas, T. Leimkühler, G. Drettakis, "3D Gaussian splatting for real-time
+radiance field rendering", SIGGRAPH 2023.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from collections.abc import Generator
+from typing import Annotated, Literal
+
+import numpy as np
+import torch
+
+from lab.core import (Cameras, Curve, GaussianSplats, Image, ImageSet, InvalidControl, InvalidValue, Progress,
+                      Range, metric, step_result)
+from lab.modules.nerf import SceneBounds
+from lab.modules.splatting.gaussians import view_of
+from lab.modules.splatting.rasterize import render
+from lab.modules.splatting.sh import C0, MAX_SH_DEGREE
+from lab.modules.splatting.training import SplatTrainingOptions, SplatTrainingRun, train_gaussians
+from lab.modules.splatting.values import SplatModel, as_model, check_count
+
+BACKGROUNDS = {"white": (1.0, 1.0, 1.0), "black": (0.0, 0.0, 0.0)}
+
+
+# ----------------------------------------------------------------------------------------------------
+# 1. Initialisation
+# ----------------------------------------------------------------------------------------------------
+@step_result
+class InitResult:
+    """Result of :func:`initialize_gaussians`."""
+
+    gaussians: SplatModel
+    initial_splats: GaussianSplats
+    count: int = metric("Gaussians")
+    mean_scale: float = metric("mean initial scale (scene units)")
+
+
+def initial_model(points: np.ndarray, colors: np.ndarray, *, opacity: float = 0.1) -> SplatModel:
+    """Gaussians at ``points`` (N, 3) with base ``colors`` (N, 3) in [0, 1] (the code's
+    ``create_from_pcd``): isotropic, of scale the root mean square distance to the 3 nearest other points,
+    unrotated, of opacity ``opacity``, spherical harmonics of degree 0 only."""
+    from scipy.spatial import cKDTree
+
+    n = len(points)
+    check_count(n, "points")
+    if n < 4:
+        raise InvalidValue("points", f"need at least 4 points to scale the Gaussians by their neighbours, "
+                                     f"got {n}")
+    distances, _ = cKDTree(points).query(points, k=4)
+    scale = np.sqrt(np.maximum(np.mean(distances[:, 1:] ** 2, axis=1), 1e-14))
+    sh = np.zeros((n, 16, 3), np.float32)
+    sh[:, 0] = (np.asarray(colors) - 0.5) / C0
+    quats = np.zeros((n, 4), np.float32)
+    quats[:, 0] = 1.0
+    return SplatModel(points, np.repeat(np.log(scale)[:, None], 3, axis=1), quats,
+                      np.full(n, math.log(opacity / (1 - opacity))), sh, sh_degree=0)
+
+
+def initialize_gaussians(bounds: SceneBounds, *, points: Annotated[int, Range(4, 200000)] = 5000,
+                         opacity: Annotated[float, Range(0.001, 0.99)] = 0.1,
+                         rng: np.random.Generator) -> InitResult:
+    """Gaussians at random points of the scene box (the paper's initialisation for its synthetic scenes,
+    section 7.1: 100k uniform points; the SfM points of a reconstruction come next), with random base
+    colours, scaled by their neighbours' distances (:func:`initial_model`).
+
+    The box is the cube of half-side ``bounds.radius`` about ``bounds.center``.
+
+    Args:
+        points: Gaussians to start from.
+        opacity: their initial opacity.
+    """
+    if not isinstance(bounds, SceneBounds):
+        raise InvalidValue("bounds", f"expected SceneBounds, got {type(bounds).__name__}")
+    xyz = bounds.center + bounds.radius * rng.uniform(-1.0, 1.0, (points, 3))
+    model = initial_model(xyz, rng.uniform(0.0, 1.0, (points, 3)), opacity=opacity)
+    return InitResult(model, model.splats(), len(model), float(np.exp(model.log_scales).mean()))
+
+
+# ----------------------------------------------------------------------------------------------------
+# 2. Training
+# ----------------------------------------------------------------------------------------------------
+@step_result
+class TrainResult:
+    """Result of :func:`train_splats`."""
+
+    model: SplatModel
+    splats: GaussianSplats
+    loss_curve: Curve
+    psnr_curve: Curve
+    density_curve: Curve
+    preview: Image
+    final_loss: float = metric("mean loss over the last 10 % of iterations")
+    train_psnr: float = metric("mean PSNR of the training views over the last 10 % of iterations", unit="dB")
+    iterations: int = metric("optimizer steps taken")
+    train_seconds: float = metric("training time, previews excluded", unit="s")
+    gaussians_count: int = metric("Gaussians at the end")
+    clones: int = metric("Gaussians cloned by the density control")
+    splits: int = metric("Gaussians split by the density control")
+    prunes: int = metric("Gaussians pruned by the density control")
+
+
+def _training_views(images: ImageSet, cameras: Cameras) -> np.ndarray:
+    if not isinstance(images, ImageSet) or len(images) == 0:
+        raise InvalidValue("images", "expected a non-empty ImageSet of training views")
+    if not isinstance(cameras, Cameras) or len(cameras) != len(images):
+        raise InvalidValue("cameras", "expected one camera per training view")
+    for i, image in enumerate(images.images):
+        if (image.width, image.height) != (cameras.width, cameras.height) or image.pixels.ndim != 3:
+            raise InvalidValue("images", f"view {i} must be an RGB image of its camera's size "
+                                         f"{cameras.width}x{cameras.height}")
+    return np.stack([image.pixels for image in images.images]).astype(np.float32)
+
+
+def train_splats(gaussians: SplatModel, images: ImageSet, cameras: Cameras, *,
+                 iterations: Annotated[int, Range(1, 1000000)] = 3000,
+                 budget_seconds: Annotated[float, Range(0.0, 36000.0)] = 60.0,
+                 sh_degree: Annotated[int, Range(0, MAX_SH_DEGREE)] = 3,
+                 sh_every: Annotated[int, Range(0, 100000)] = 300,
+                 densify_from: Annotated[int, Range(0, 100000)] = 100,
+                 densify_every: Annotated[int, Range(0, 100000)] = 100,
+                 densify_until: Annotated[float, Range(0.0, 1.0)] = 0.6,
+                 grad_threshold: Annotated[float, Range(0.0, 1.0)] = 0.0002,
+                 percent_dense: Annotated[float, Range(0.0, 1.0)] = 0.01,
+                 min_opacity: Annotated[float, Range(0.0, 1.0)] = 0.005,
+                 opacity_reset_every: Annotated[int, Range(0, 100000)] = 1500,
+                 ssim_weight: Annotated[float, Range(0.0, 1.0)] = 0.2,
+                 preview_every: Annotated[int, Range(10, 100000)] = 100,
+                 background: Literal["white", "black"] = "white",
+                 rng: np.random.Generator, device: str = "cpu") -> Generator[Progress, None, TrainResult]:
+    """Fit the Gaussians to the training views (Kerbl et al. 2023, sections 5 and 7.1; :mod:`.training`).
+
+    Each iteration renders one training view with the fast rasterizer over ``background``, takes
+    ``(1 - ssim_weight) L1 + ssim_weight D-SSIM`` (eq. 7) and an Adam step on every parameter (the means'
+    learning rate decaying a hundredfold over the run). Every ``sh_every`` iterations the colour gains a
+    spherical-harmonic degree, up to ``sh_degree``. Every ``densify_every`` iterations from
+    ``densify_from`` on, until ``densify_until`` of the run, Gaussians whose mean view-space positional
+    gradient exceeds ``grad_threshold`` are cloned (if at most ``percent_dense`` of the scene extent) or
+    split, and those under ``min_opacity`` pruned; opacities are reset to 0.01 every
+    ``opacity_reset_every``. The paper's schedule (30k iterations: densify from 500 to 15k every 100,
+    reset every 3k, a degree every 1k) is scaled here to runs of minutes. Stops after ``iterations`` or
+    ``budget_seconds`` (0: no limit). Yields the loss every 10 iterations and a preview of training view
+    0 every ``preview_every``.
+
+    Args:
+        iterations: most optimizer steps.
+        budget_seconds: most seconds of training (0: only the iterations count).
+        sh_degree: the highest spherical-harmonic degree of the colours.
+        sh_every: iterations between two raises of the degree (0: stay at degree 0).
+        densify_from: first iteration of the density control.
+        densify_every: iterations between two density controls (0: none).
+        densify_until: fraction of the run after which the set of Gaussians stays as it is.
+        grad_threshold: mean view-space positional gradient (NDC) above which a Gaussian is densified.
+        percent_dense: largest scale, as a fraction of the scene extent, of a Gaussian cloned, not split.
+        min_opacity: Gaussians less opaque are pruned.
+        opacity_reset_every: iterations between two opacity resets (0: none).
+        ssim_weight: lambda, the weight of D-SSIM in the loss.
+        preview_every: iterations between two previews.
+        background: the colour behind the Gaussians (white for object datasets).
+    """
+    pixels = _training_views(images, cameras)
+    start = as_model(gaussians)
+    initial = SplatModel(start.means, start.log_scales, start.quats, start.opacity_logits, start.sh,
+                         sh_degree=start.sh_degree, background=np.asarray(BACKGROUNDS[background]))
+    options = SplatTrainingOptions(iterations, budget_seconds, sh_degree, sh_every, densify_from,
+                                   densify_every, densify_until, grad_threshold, percent_dense, min_opacity,
+                                   opacity_reset_every, ssim_weight, preview_every)
+    run = yield from train_gaussians(initial, pixels, cameras, options, preview_view=0, rng=rng,
+                                     device=device)
+    tail = max(1, run.iterations // 10)
+    loss_curve, psnr_curve, density_curve = _curves(run)
+    preview = render_model(run.model, cameras, 0, device=device)
+    events = run.events
+    return TrainResult(run.model, run.model.splats(), loss_curve, psnr_curve, density_curve,
+                       Image(preview, name="training view 0"), float(run.losses[-tail:].mean()),
+                       float(np.minimum(run.psnrs[-tail:], 99.0).mean()), run.iterations, run.seconds,
+                       len(run.model), sum(e.clones for e in events), sum(e.splits for e in events),
+                       sum(e.prunes for e in events))
+
+
+def _curves(run: SplatTrainingRun) -> tuple[Curve, Curve, Curve]:
+    """The loss and training-view PSNR (running means over a twentieth of the run) and, per density control,
+    the Gaussians cloned, split, pruned and held."""
+    window = max(1, run.iterations // 20)
+    kernel = np.ones(window) / window
+    x = np.arange(len(run.losses) - window + 1, dtype=np.float64) + window
+    loss = Curve(x, np.convolve(run.losses, kernel, mode="valid"), title="training loss", xlabel="iteration",
+                 ylabel="0.8 L1 + 0.2 D-SSIM", labels=(f"loss (mean of {window})",))
+    psnr = Curve(x, np.convolve(np.minimum(run.psnrs, 99.0), kernel, mode="valid"), title="training PSNR",
+                 xlabel="iteration", ylabel="dB", labels=(f"training view PSNR (mean of {window})",))
+    events = run.events
+    steps = np.asarray([e.iteration for e in events], np.float64)
+    counts = np.asarray([[e.clones for e in events], [e.splits for e in events], [e.prunes for e in events],
+                         [e.count for e in events]], np.float64).reshape(4, len(events))
+    density = Curve(steps, counts, title="adaptive density control", xlabel="iteration", ylabel="Gaussians",
+                    labels=("cloned", "split", "pruned", "held"))
+    return loss, psnr, density
+
+
+# ----------------------------------------------------------------------------------------------------
+# 3-4. Rendering
+# ----------------------------------------------------------------------------------------------------
+def render_model(model: SplatModel, cameras: Cameras, index: int, *, device: str = "cpu") -> np.ndarray:
+    """Camera ``index`` of ``cameras`` rendered from ``model`` (no gradient): RGB float32 ``(H, W, 3)`` in
+    [0, 1]."""
+    t = as_model(model, "model").tensors(device=device)
+    with torch.no_grad():
+        image = render(t["means"], t["log_scales"], t["quats"], t["opacity_logits"], t["sh"],
+                       view_of(cameras, index, device=device), sh_degree=model.sh_degree,
+                       background=torch.as_tensor(model.background, device=device)).image
+    return np.clip(image.cpu().numpy(), 0.0, 1.0).astype(np.float32)
+
+
+@step_result
+class HeldOutResult:
+    """Result of :func:`render_held_out`."""
+
+    test_renders: ImageSet
+    render_seconds: float = metric("time to render every held-out view", unit="s")
+
+
+def render_held_out(model: SplatModel, test_cameras: Cameras, *, device: str = "cpu") -> HeldOutResult:
+    """Render every held-out view with the fast rasterizer, for evaluation (PSNR and SSIM against the
+    truth, :func:`lab.modules.nerf.evaluate_held_out`)."""
+    started = time.perf_counter()
+    renders = [render_model(model, test_cameras, i, device=device) for i in range(len(test_cameras))]
+    seconds = time.perf_counter() - started
+    images = ImageSet(tuple(Image(r, name=f"held-out {i}") for i, r in enumerate(renders)))
+    return HeldOutResult(images, seconds)
+
+
+@step_result
+class ViewResult:
+    """Result of :func:`render_view`."""
+
+    rendered: Image
+    render_seconds: float = metric("time to render the view", unit="s")
+
+
+def render_view(model: SplatModel, test_cameras: Cameras, *,
+                view: Annotated[int, Range(0, 1000)] = 0, device: str = "cpu") -> ViewResult:
+    """Render held-out camera ``view``.
+
+    Args:
+        view: the held-out camera.
+    """
+    if not 0 <= view < len(test_cameras):
+        raise InvalidControl("view", f"must be in [0, {len(test_cameras) - 1}], got {view}")
+    started = time.perf_counter()
+    image = render_model(model, test_cameras, view, device=device)
+    return ViewResult(Image(image, name=f"held-out view {view}"), time.perf_counter() - started)
+
+
+__all__ = ["BACKGROUNDS", "HeldOutResult", "InitResult", "TrainResult", "ViewResult", "initial_model",
+           "initialize_gaussians", "render_held_out", "render_model", "render_view", "train_splats"]
