@@ -22,6 +22,10 @@ The package (this file is its only import surface):
     model.py       the NeRF MLP and rendering rays and images through it
     grid.py        the accelerated variant: a voxel grid trained coarse to fine, empty space skipped
     training.py    the training loop (a generator yielding progress and previews)
+    warmup.py      the 2D warm-up: a coordinate MLP fitting one image, with and without the encoding
+    path.py        the orbit of novel views about the scene centre
+    mesh.py        the density's level set by marching cubes, coloured by head-on rays
+    export.py      the exports: the mesh as PLY / GLB, the orbit's frames as a GIF
     reference.py   slow readable loop versions of the fast functions: the tests' oracles
     evaluate.py    PSNR, SSIM, depth error of held-out views
     datasets.py    a synthetic object (exact depth) and the NeRF-synthetic layout
@@ -35,6 +39,8 @@ State names:
     ray_lines       Segments3D      a few of them, near to far, in their pixel's colour
     encoding        EncodingConfig  L for positions and directions, identity or not
     encoding_plot   Curve           p and sin(2^k pi p) over [-1, 1]
+    fit_psnr        Curve           the 2D warm-up: PSNR over Adam steps without the encoding and per L
+    fit_images      ImageSet        its target and fitted images
     model           NerfCheckpoint  the trained network's weights and configuration (method mlp)
                     | GridCheckpoint  or the trained grid's values (method grid)
     loss_curve      Curve           the photometric loss over iterations
@@ -45,6 +51,9 @@ State names:
     test_opacity    (V, H, W)       their opacities
     rendered, depth_map, opacity_map  Image   one held-out view, its depth (near black, far white), opacity
     ray_weights     Curve           the weights w_i along one pixel's ray
+    path_frames     ImageSet        novel views along an orbit about the scene centre
+    path_cameras    Cameras         their cameras (carrying ``path_frames``)
+    mesh            Mesh            the density's level set, vertex-coloured (world units)
 Truth: ``test_images`` ``(V, H, W, 3)``; the synthetic object also ``test_depths``, ``train_depths``.
 """
 
@@ -53,6 +62,7 @@ from __future__ import annotations
 from lab.core import Pipeline
 from lab.modules.nerf.datasets import hemisphere_cameras, nerf_synthetic, object_scene, synthetic_object
 from lab.modules.nerf.encoding import encoding_size, positional_encoding
+from lab.modules.nerf.export import EXPORTS
 from lab.modules.nerf.evaluate import EVALUATIONS, depth_error, evaluate_held_out, image_psnr, image_ssim
 from lab.modules.nerf.model import (DENSITY_SHIFT, NerfMLP, RayRendering, network_from, render_image,
                                     render_rays)
@@ -63,32 +73,45 @@ from lab.modules.nerf.reference import (camera_rays_reference, positional_encodi
 from lab.modules.nerf.grid import GridCheckpoint, GridField, render_grid
 from lab.modules.nerf.rendering import (PackedRendering, VolumeRendering, hierarchical_samples,
                                         interval_lengths, sample_pdf, volume_render, volume_render_packed)
-from lab.modules.nerf.steps import (FieldRenderer, encode_positions, generate_rays, render_held_out,
-                                    render_view, train_nerf)
+from lab.modules.nerf.mesh import density_lattice, iso_surface, lattice_points, mesh_trimesh
+from lab.modules.nerf.path import mean_up, orbit_path
+from lab.modules.nerf.steps import (FieldRenderer, encode_positions, extract_mesh, fit_image_2d,
+                                    generate_rays, render_held_out, render_path, render_view, train_nerf)
 from lab.modules.nerf.values import EncodingConfig, FieldConfig, NerfCheckpoint, RayBundle, SceneBounds
+from lab.modules.nerf.warmup import CoordinateMLP, fit_image
+
+#: State names the viewer may read by name: the cameras and what they carry, the model and its bounds,
+#: the training preview, one view's depth and opacity, the orbit and the mesh.
+VIEWS = ("cameras", "images", "test_cameras", "bounds", "model", "preview", "rendered", "depth_map",
+         "opacity_map", "path_cameras", "path_frames", "mesh")
 
 PIPELINE = Pipeline.build(
     name="nerf",
     title="Neural radiance fields",
-    summary="NeRF step by step on a CPU: rays through every pixel, the positional encoding, an MLP of "
-            "density and colour trained by volume rendering (stratified and hierarchical samples) or, much "
-            "faster, a voxel grid trained coarse to fine, then held-out views rendered and compared (PSNR, "
-            "SSIM, depth error).",
-    steps=[generate_rays, encode_positions, train_nerf, render_held_out, render_view],
+    summary="NeRF step by step on a CPU: rays through every pixel, the positional encoding (and why: one "
+            "image fitted with and without it), an MLP of density and colour trained by volume rendering "
+            "(stratified and hierarchical samples) or, much faster, a voxel grid trained coarse to fine, "
+            "then held-out views rendered and compared (PSNR, SSIM, depth error), novel views along an orbit "
+            "and a coloured mesh by marching cubes.",
+    steps=[generate_rays, encode_positions, fit_image_2d, train_nerf, render_held_out, render_view,
+           render_path, extract_mesh],
     datasets=[synthetic_object, nerf_synthetic],
     evaluations=EVALUATIONS,
-    views=["model", "test_cameras", "bounds"],
+    exports=EXPORTS,
+    views=VIEWS,
 )
 
 __all__ = [
-    "DENSITY_SHIFT", "EVALUATIONS", "PIPELINE", "EncodingConfig", "FieldConfig", "FieldRenderer",
-    "GridCheckpoint", "GridField", "NerfCheckpoint", "NerfMLP", "PackedRendering", "RayBundle",
-    "RayRendering", "SceneBounds", "VolumeRendering", "camera_rays", "camera_rays_reference",
-    "cameras_rays", "depth_error", "encode_positions", "encoding_size", "evaluate_held_out",
-    "generate_rays", "hemisphere_cameras", "hierarchical_samples", "image_psnr", "image_ssim",
-    "interval_lengths", "nerf_synthetic", "network_from", "object_scene", "pixel_centres",
-    "positional_encoding", "positional_encoding_reference", "render_grid", "render_held_out",
-    "render_image", "render_rays", "render_view", "sample_pdf", "sample_pdf_reference", "scaled_cameras",
-    "stratified_samples", "stratified_samples_reference", "synthetic_object", "train_nerf",
-    "volume_render", "volume_render_packed", "volume_render_reference",
+    "DENSITY_SHIFT", "EVALUATIONS", "EXPORTS", "PIPELINE", "VIEWS", "CoordinateMLP", "EncodingConfig",
+    "FieldConfig", "FieldRenderer", "GridCheckpoint", "GridField", "NerfCheckpoint", "NerfMLP",
+    "PackedRendering", "RayBundle", "RayRendering", "SceneBounds", "VolumeRendering", "camera_rays",
+    "camera_rays_reference", "cameras_rays", "density_lattice", "depth_error", "encode_positions",
+    "encoding_size", "evaluate_held_out", "extract_mesh", "fit_image", "fit_image_2d", "generate_rays",
+    "hemisphere_cameras", "hierarchical_samples", "image_psnr", "image_ssim", "interval_lengths",
+    "iso_surface", "lattice_points", "mean_up", "mesh_trimesh", "nerf_synthetic", "network_from",
+    "object_scene", "orbit_path", "pixel_centres", "positional_encoding", "positional_encoding_reference",
+    "render_grid", "render_held_out", "render_image", "render_path", "render_rays", "render_view",
+    "sample_pdf", "sample_pdf_reference", "scaled_cameras", "stratified_samples",
+    "stratified_samples_reference", "synthetic_object", "train_nerf", "volume_render", "volume_render_packed",
+    "volume_render_reference",
 ]

@@ -2,9 +2,12 @@
 
 1. :func:`generate_rays`     a ray through every training pixel (OpenCV cameras, pixel centres)
 2. :func:`encode_positions`  the positional encoding gamma(p), shown as curves
-3. :func:`train_nerf`        the MLP trained by volume rendering batches of rays (a generator step)
-4. :func:`render_held_out`   the held-out views rendered (evaluated: PSNR, SSIM, depth error)
-5. :func:`render_view`       one view with its depth and opacity, and the weights along one ray
+3. :func:`fit_image_2d`      the 2D warm-up: one image fitted with and without the encoding
+4. :func:`train_nerf`        the MLP trained by volume rendering batches of rays (a generator step)
+5. :func:`render_held_out`   the held-out views rendered (evaluated: PSNR, SSIM, depth error)
+6. :func:`render_view`       one view with its depth and opacity, and the weights along one ray
+7. :func:`render_path`       novel views along an orbit (frames, exported as a GIF)
+8. :func:`extract_mesh`      the density's level set by marching cubes, coloured (exported as PLY, GLB)
 
 Reference: B. Mildenhall, P. P. Srinivasan, M. Tancik, J. T. Barron, R. Ramamoorthi, R. Ng, "NeRF:
 Representing scenes as neural radiance fields for view synthesis", ECCV 2020.
@@ -19,17 +22,21 @@ from typing import Annotated, Literal
 import numpy as np
 import torch
 
-from lab.core import (Cameras, CapacityExceeded, Curve, Image, ImageSet, InvalidControl, InvalidValue,
-                      Progress, Range, Segments3D, metric, step_result)
+from lab.core import (Cameras, CapacityExceeded, Curve, Image, ImageSet, InvalidControl, InvalidValue, Mesh,
+                      Progress, Range, Segments3D, Warnings, metric, step_result)
 from lab.modules.nerf.encoding import encoding_size, positional_encoding
+from lab.modules.nerf.evaluate import image_psnr
 from lab.modules.nerf.grid import (GridCheckpoint, GridField, GridOptions, grid_checkpoint_from, grid_from,
                                    grid_step, render_grid, render_grid_image, train_grid_field)
+from lab.modules.nerf.mesh import coloured_mesh, density_lattice, head_on_rays, iso_surface
 from lab.modules.nerf.model import (ImageRendering, NerfMLP, checkpoint_from, network_from, render_image,
                                     render_rays)
+from lab.modules.nerf.path import orbit_path
 from lab.modules.nerf.rays import cameras_rays, scaled_cameras
-from lab.modules.nerf.training import PreviewRays, TrainingOptions, train_field, training_curves
+from lab.modules.nerf.training import PreviewRays, TrainingOptions, TrainingRun, train_field, training_curves
 from lab.modules.nerf.values import (EncodingConfig, FieldConfig, NerfCheckpoint, RayBundle, SceneBounds,
                                      as_bounds, as_encoding, as_rays)
+from lab.modules.nerf.warmup import ImageFit, fit_image, fitting_target
 
 #: Largest side of the preview rendered while training.
 PREVIEW_SIDE = 64
@@ -138,7 +145,67 @@ def encode_positions(*, frequencies: Annotated[int, Range(0, 16)] = 6,
 
 
 # ----------------------------------------------------------------------------------------------------
-# 3. Training
+# 3. The 2D warm-up
+# ----------------------------------------------------------------------------------------------------
+@step_result
+class ImageFitResult:
+    """Result of :func:`fit_image_2d`."""
+
+    fit_psnr: Curve
+    fit_images: ImageSet
+    psnr_without_encoding: float = metric("PSNR of the fit without the encoding, after the last step",
+                                          unit="dB")
+    psnr_with_encoding: float = metric("PSNR of the fit with the largest L, after the last step", unit="dB")
+
+
+def fit_image_2d(images: ImageSet, *, view: Annotated[int, Range(0, 1000)] = 0,
+                 side: Annotated[int, Range(8, 256)] = 64,
+                 frequencies: Annotated[tuple[int, int, int], Range(1, 10)] = (2, 4, 6),
+                 hidden: Annotated[int, Range(8, 256)] = 64, layers: Annotated[int, Range(1, 8)] = 3,
+                 iterations: Annotated[int, Range(1, 10000)] = 300,
+                 learning_rate: Annotated[float, Range(1e-5, 1.0)] = 3e-3,
+                 rng: np.random.Generator, device: str = "cpu") -> Generator[Progress, None, ImageFitResult]:
+    """Why NeRF encodes positions, in 2D: fit training image ``view`` (shrunk to at most ``side`` px) with
+    a coordinate MLP ``(x, y) -> RGB`` on the raw coordinates and on ``gamma(x, y)`` with each of
+    ``frequencies`` L (Tancik et al. 2020, "Fourier features let networks learn high frequency functions",
+    Figure 1; Mildenhall et al. 2020, section 5.1). Every fit has the same network, initial weights and
+    Adam steps on all pixels; ``fit_psnr`` plots their PSNR over the steps side by side, ``fit_images``
+    holds the target and the fitted images.
+
+    Args:
+        view: the training image to fit.
+        side: its longer side after shrinking (pixels).
+        frequencies: the values of L compared with no encoding.
+        hidden: width of the MLP.
+        layers: hidden layers of the MLP.
+        iterations: Adam steps per fit (one step sees every pixel).
+        learning_rate: Adam's learning rate.
+    """
+    if not isinstance(images, ImageSet) or len(images) == 0:
+        raise InvalidValue("images", "expected a non-empty ImageSet to fit")
+    if not 0 <= view < len(images):
+        raise InvalidControl("view", f"must be in [0, {len(images) - 1}], got {view}")
+    target = fitting_target(images[view].pixels, side)
+    seed = int(rng.integers(0, 2**62))
+    fits: list[ImageFit] = []
+    levels = (0, *sorted(set(frequencies)))
+    for k, level in enumerate(levels):
+        fit = yield from fit_image(target, level, hidden=hidden, layers=layers, iterations=iterations,
+                                   learning_rate=learning_rate, seed=seed, device=device,
+                                   before=k * iterations, total=len(levels) * iterations)
+        fits.append(fit)
+    names = [("no encoding" if f.frequencies == 0 else f"L = {f.frequencies}") for f in fits]
+    curve = Curve(np.arange(1, iterations + 1, dtype=np.float64), np.stack([f.psnrs for f in fits]),
+                  title="fitting one image: PSNR over Adam steps", xlabel="step", ylabel="dB",
+                  labels=tuple(names))
+    pictures = (Image(target, name="target"),
+                *(Image(np.clip(f.image, 0, 1), name=f"{n}: {image_psnr(f.image, target):.1f} dB")
+                  for f, n in zip(fits, names, strict=True)))
+    return ImageFitResult(curve, ImageSet(pictures), float(fits[0].psnrs[-1]), float(fits[-1].psnrs[-1]))
+
+
+# ----------------------------------------------------------------------------------------------------
+# 4. Training
 # ----------------------------------------------------------------------------------------------------
 @step_result
 class TrainResult:
@@ -148,6 +215,7 @@ class TrainResult:
     loss_curve: Curve
     psnr_curve: Curve
     preview: Image
+    warnings: Warnings
     final_loss: float = metric("mean photometric loss over the last 10 % of iterations")
     train_psnr: float = metric("mean batch PSNR over the last 10 % of iterations", unit="dB")
     iterations: int = metric("optimizer steps taken")
@@ -224,13 +292,29 @@ def train_nerf(rays: RayBundle, encoding: EncodingConfig, cameras: Cameras, *,
                                      device=device)
         assert isinstance(run.net, NerfMLP)
         model = checkpoint_from(run.net, bundle.bounds, back)
+    warnings = _check_run(run, iterations, budget_seconds)
     tail = max(1, run.iterations // 10)
     loss_curve, psnr_curve = training_curves(run)
     final = FieldRenderer(model, device).image(preview.origins, preview.directions, preview.shape)
-    return TrainResult(model, loss_curve, psnr_curve, Image(final.color, name="training view 0"),
+    return TrainResult(model, loss_curve, psnr_curve, Image(final.color, name="training view 0"), warnings,
                        float(run.losses[-tail:].mean()), float(np.minimum(run.psnrs[-tail:], 99.0).mean()),
                        run.iterations, run.seconds, run.iterations * batch_rays / max(run.seconds, 1e-9),
                        run.samples_per_ray)
+
+
+def _check_run(run: TrainingRun, iterations: int, budget_seconds: float) -> tuple[str, ...]:
+    """Refuse (:class:`InvalidControl` on ``budget_seconds``) a run whose time budget ran out inside its
+    first step (one step of a fresh model is noise); a warning for a run stopped before its iterations and
+    its budget (cancelled: the model trained so far is the result)."""
+    ran_out = 0 < budget_seconds <= run.seconds
+    if ran_out and run.iterations <= 1 < iterations:
+        raise InvalidControl("budget_seconds", f"{budget_seconds:g} s ran out during the first "
+                                               f"training step ({run.seconds:.2g} s): give a budget of many "
+                                               "steps, or 0 for no time limit")
+    if run.iterations < iterations and not ran_out:
+        return (f"stopped after {run.iterations} of {iterations} iterations: the model trained so far is "
+                "kept",)
+    return ()
 
 
 def _check_batch(method: str, batch_rays: int, samples: int, hidden: int) -> None:
@@ -248,7 +332,7 @@ def _check_batch(method: str, batch_rays: int, samples: int, hidden: int) -> Non
 
 
 # ----------------------------------------------------------------------------------------------------
-# 4-5. Rendering
+# 5-6. Rendering
 # ----------------------------------------------------------------------------------------------------
 class FieldRenderer:
     """A trained model (either kind) made ready to render on ``device``: whole views and single rays."""
@@ -263,15 +347,17 @@ class FieldRenderer:
         self.net = network_from(model, device) if isinstance(model, NerfCheckpoint) else None
         self.grid = grid_from(model, device) if isinstance(model, GridCheckpoint) else None
 
-    def image(self, origins: torch.Tensor, directions: torch.Tensor,
-              shape: tuple[int, int]) -> ImageRendering:
-        """One view from its rays ``(H * W, 3)``."""
+    def image(self, origins: torch.Tensor, directions: torch.Tensor, shape: tuple[int, int], *,
+              bounds: SceneBounds | None = None, background: torch.Tensor | None = None) -> ImageRendering:
+        """One view from its rays ``(H * W, 3)``; sampled between the model's near and far unless ``bounds``
+        (with the model's centre and radius) says otherwise, over the model's background unless
+        ``background`` ``(3,)``."""
+        bounds = self.model.bounds if bounds is None else bounds
+        background = self.background if background is None else background
         if self.grid is not None:
-            return render_grid_image(self.grid, origins, directions, self.model.bounds, shape,
-                                     background=self.background)
+            return render_grid_image(self.grid, origins, directions, bounds, shape, background=background)
         assert self.net is not None
-        return render_image(self.net, origins, directions, self.model.bounds, shape,
-                            background=self.background)
+        return render_image(self.net, origins, directions, bounds, shape, background=background)
 
     def ray(self, origin: torch.Tensor, direction: torch.Tensor) -> tuple[np.ndarray, np.ndarray]:
         """Depths and weights of the samples of one ray ``(1, 3)`` (of its last pass; a grid's evaluated
@@ -366,6 +452,91 @@ def render_view(model: NerfCheckpoint | GridCheckpoint, test_cameras: Cameras, *
                       Image(np.clip(image.opacity, 0.0, 1.0), name="opacity"), weights, seconds)
 
 
+# ----------------------------------------------------------------------------------------------------
+# 7. Novel views along a path
+# ----------------------------------------------------------------------------------------------------
+@step_result
+class PathResult:
+    """Result of :func:`render_path`."""
+
+    path_frames: ImageSet
+    path_cameras: Cameras
+    render_seconds: float = metric("time to render every frame", unit="s")
+
+
+def render_path(model: NerfCheckpoint | GridCheckpoint, cameras: Cameras, *,
+                frames: Annotated[int, Range(2, 360)] = 24, scale: Annotated[float, Range(0.05, 4.0)] = 1.0,
+                device: str = "cpu") -> Generator[Progress, None, PathResult]:
+    """Novel views along an orbit about the scene centre at the training cameras' mean height and distance
+    (:func:`~lab.modules.nerf.path.orbit_path`: "up" is the mean of the cameras' up vectors, frame 0 at
+    training camera 0's azimuth), rendered like a held-out view at ``scale`` times the training
+    resolution. ``path_cameras`` carry their frames (drawn as frustums around the scene); the frames are
+    exported as an animated GIF (``vision-lab export nerf --format gif``). Yields each frame as it is
+    rendered.
+
+    Args:
+        frames: views along the full turn.
+        scale: their resolution as a fraction of the training cameras'.
+    """
+    renderer = FieldRenderer(model, device)
+    if not isinstance(cameras, Cameras) or len(cameras) == 0:
+        raise InvalidValue("cameras", "expected the training Cameras (the orbit follows their height)")
+    path = orbit_path(cameras, renderer.model.bounds.center, frames, scale=scale)
+    origins, directions = cameras_rays(path, device=device)
+    rendered: list[Image] = []
+    started = time.perf_counter()
+    for i in range(frames):
+        view = renderer.image(origins[i], directions[i], (path.height, path.width))
+        rendered.append(Image(view.color, name=f"frame {i}"))
+        yield Progress(iteration=i + 1, total=frames, message=f"frame {i + 1} of {frames}",
+                       values={"frame": rendered[-1]})
+    seconds = time.perf_counter() - started
+    carrying = Cameras(path.K, path.R, path.t, path.width, path.height, image="path_frames")
+    return PathResult(ImageSet(tuple(rendered)), carrying, seconds)
+
+
+# ----------------------------------------------------------------------------------------------------
+# 8. A mesh of the density
+# ----------------------------------------------------------------------------------------------------
+@step_result
+class MeshResult:
+    """Result of :func:`extract_mesh`."""
+
+    mesh: Mesh
+    vertices: int = metric("mesh vertices")
+    faces: int = metric("mesh triangles")
+    max_density: float = metric("largest density sigma on the lattice (per scene unit)")
+
+
+def extract_mesh(model: NerfCheckpoint | GridCheckpoint, *, resolution: Annotated[int, Range(16, 256)] = 96,
+                 level: Annotated[float, Range(1e-3, 1e5)] = 5.0, device: str = "cpu") -> MeshResult:
+    """The surface where the density crosses ``level``, as a coloured triangle mesh (:mod:`~.mesh`):
+    sigma sampled on a ``resolution^3`` lattice over the scene box, ``skimage.measure.marching_cubes``
+    at ``level``, each vertex coloured by the volume rendering of a short ray that meets it head on
+    (along the density's gradient, from 3 lattice steps outside to 3 inside, its colour divided by its
+    opacity). Exported as PLY and GLB (``vision-lab export nerf --format ply``) in the scene's frame.
+
+    Args:
+        resolution: lattice points per side of the scene box.
+        level: the density sigma (per scene unit) of the surface: higher lies deeper and drops faint parts.
+    """
+    renderer = FieldRenderer(model, device)
+    bounds = renderer.model.bounds
+    sigma = density_lattice(renderer.model, resolution, device=device)
+    surface = iso_surface(sigma, level, bounds)
+    reach = 3.0 * 2.0 * bounds.radius / (resolution - 1)
+    origins, directions = head_on_rays(surface, reach)
+    segment = SceneBounds(0.0, 2.0 * reach, bounds.center, bounds.radius)
+    seen = renderer.image(torch.as_tensor(origins, dtype=torch.float32, device=device),
+                          torch.as_tensor(directions, dtype=torch.float32, device=device),
+                          (1, len(origins)), bounds=segment,
+                          background=torch.zeros(3, dtype=torch.float32, device=device))
+    colours = seen.color[0] / np.maximum(seen.opacity[0], 1e-3)[:, None]
+    mesh = coloured_mesh(surface, colours)
+    return MeshResult(mesh, len(mesh.vertices), len(mesh.faces), float(sigma.max()))
+
+
 __all__ = ["BACKGROUNDS", "MAX_BATCH_ACTIVATIONS", "MAX_BATCH_SAMPLES", "PREVIEW_SIDE", "EncodingResult",
-           "FieldRenderer", "HeldOutResult", "RaysResult", "TrainResult", "ViewResult", "encode_positions",
-           "generate_rays", "render_held_out", "render_view", "train_nerf"]
+           "FieldRenderer", "HeldOutResult", "ImageFitResult", "MeshResult", "PathResult", "RaysResult",
+           "TrainResult", "ViewResult", "encode_positions", "extract_mesh", "fit_image_2d", "generate_rays",
+           "render_held_out", "render_path", "render_view", "train_nerf"]

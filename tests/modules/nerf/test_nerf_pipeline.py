@@ -1,4 +1,4 @@
-"""lab.modules.nerf's steps through its PIPELINE (not yet in lab.modules.MODULES): shapes, a tiny training
+"""lab.modules.nerf's steps through its PIPELINE (registered in lab.modules.MODULES): shapes, a tiny training
 run that lowers the loss, held-out evaluation, and the errors that name the problem. Networks here are tiny
 (16 samples, a 32-wide MLP, a few dozen iterations) and torch runs on one thread."""
 
@@ -8,7 +8,10 @@ import numpy as np
 import pytest
 import torch
 
+from modules.texture_helpers import drive
+
 from lab.core import Image, ImageSet, InvalidControl, InvalidValue, Progress, open_session
+from lab.modules import MODULES, get_pipeline
 from lab.modules import nerf as N
 from lab.modules.nerf import PIPELINE
 
@@ -38,16 +41,20 @@ def _train(session, **controls):
             return progress, stop.value
 
 
-def test_pipeline_steps_in_order():
-    assert PIPELINE.name == "nerf"
-    assert [s.name for s in PIPELINE.steps] == ["generate_rays", "encode_positions", "train_nerf",
-                                                "render_held_out", "render_view"]
-    assert PIPELINE.step("train_nerf").is_generator
+def test_pipeline_steps_in_order_and_registered():
+    assert "nerf" in MODULES and get_pipeline("nerf") is PIPELINE
+    assert PIPELINE.name == "nerf" and PIPELINE.title == "Neural radiance fields"
+    assert [s.name for s in PIPELINE.steps] == ["generate_rays", "encode_positions", "fit_image_2d",
+                                                "train_nerf", "render_held_out", "render_view", "render_path",
+                                                "extract_mesh"]
+    assert all(PIPELINE.step(name).is_generator for name in ("fit_image_2d", "train_nerf", "render_path"))
     assert [d.name for d in PIPELINE.datasets] == ["synthetic_object", "nerf_synthetic"]
     assert PIPELINE.dataset("nerf_synthetic").takes_path
     written = {name for spec in PIPELINE.steps for name in spec.writes}
     dataset = {"images", "cameras", "test_cameras", "bounds"}
     assert PIPELINE.views <= written | dataset
+    assert sorted(PIPELINE.exports) == ["gif", "glb", "ply"]
+    assert PIPELINE.export("ply").reads == ("mesh",) and PIPELINE.export("gif").reads == ("path_frames",)
 
 
 def test_rays_carry_their_pixels_colours(session):
@@ -106,9 +113,9 @@ def test_training_is_reproducible_from_its_rng(session):
 
 def test_hierarchical_training_and_a_time_budget(session):
     _, fine = _train(session, iterations=4, fine_samples=8)
-    assert fine.model.config.fine_samples == 8 and fine.iterations == 4
-    _, short = _train(session, iterations=1000, budget_seconds=1e-9)  # the budget ends after one step
-    assert short.iterations == 1
+    assert fine.model.config.fine_samples == 8 and fine.iterations == 4 and fine.warnings == ()
+    _, timed = _train(session, iterations=100000, budget_seconds=0.3)  # the budget ends the run, no warning
+    assert 1 < timed.iterations < 100000 and timed.warnings == ()
 
 
 def test_held_out_evaluation_and_a_rendered_view(session):
