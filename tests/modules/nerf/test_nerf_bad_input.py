@@ -41,7 +41,8 @@ def _blender_folder(folder, cameras: Cameras, *, size: int = 16) -> None:
         frames.append({"file_path": f"./train/r_{i}", "transform_matrix": c2w[i].tolist()})
     angle = 2.0 * np.arctan(0.5 * cameras.width / cameras.K[0, 0, 0])
     for split in ("train", "test"):
-        (folder / f"transforms_{split}.json").write_text(json.dumps({"camera_angle_x": angle, "frames": frames}))
+        data = {"camera_angle_x": angle, "frames": frames}
+        (folder / f"transforms_{split}.json").write_text(json.dumps(data))
 
 
 def _rewrite(folder, split: str, change) -> None:
@@ -133,8 +134,8 @@ def test_cancelling_training_keeps_the_model_trained_so_far(session, method):
 
 
 @pytest.mark.xfail(strict=True, reason="Session._drive closes a cancelled generator instead of throwing "
-                                       "Cancelled in: patch /work/notes/patches/nerfapp-cancel-keeps-model-core"
-                                       ".diff (with the training loops' -nerf.diff)")
+                                       "Cancelled in: patch /work/notes/patches/"
+                                       "nerfapp-cancel-keeps-model-core.diff (with the loops' -nerf.diff)")
 def test_cancel_in_a_session_keeps_the_model_and_says_so(session):
     fork = session.fork()
     seen = []
@@ -146,7 +147,7 @@ def test_cancel_in_a_session_keeps_the_model_and_says_so(session):
 
     record = fork.run("train_nerf", {**TINY, "method": "grid", "grid_resolution": 16, "iterations": 1000,
                                      "budget_seconds": 0.0}, on_progress=cancel_at_the_second_report)
-    assert seen == [10, 20] and record.status == "ok"  # asked while report 20 is shown, it stops at the next
+    assert seen == [10, 20] and record.status == "ok"  # asked while report 20 shows, it stops at the next
     assert record.metrics["iterations"] == 30 and "the model trained so far is kept" in record.warnings[0]
     assert isinstance(fork.state["model"], N.GridCheckpoint)
     fork.run("render_held_out")  # and the rest of the pipeline runs on it

@@ -1,7 +1,7 @@
-"""What NeRF makes of a trained field: the mesh by marching cubes (against an analytic field's exact sphere and
-the synthetic object's exact depth), the orbit of novel views, the exports (PLY and GLB re-read by trimesh, a
-GIF by imageio) and the 2D warm-up (the encoding beats raw coordinates on a textured image). Fields here are
-tiny grids (a few hundred steps) and torch runs on one thread."""
+"""What NeRF makes of a trained field: the mesh by marching cubes (against an analytic field's exact sphere
+and the synthetic object's exact depth), the orbit of novel views, the exports (PLY and GLB re-read by
+trimesh, a GIF by imageio) and the 2D warm-up (the encoding beats raw coordinates on a textured image).
+Fields here are tiny grids (a few hundred steps) and torch runs on one thread."""
 
 from __future__ import annotations
 

@@ -31,14 +31,8 @@ def session():
 def _train(session, **controls):
     """Run train_nerf's generator directly: its progress and its result."""
     state = session.state
-    generator = N.train_nerf(state["rays"], state["encoding"], state["cameras"], **{**TINY, **controls},
-                             rng=np.random.default_rng(0))
-    progress = []
-    while True:
-        try:
-            progress.append(next(generator))
-        except StopIteration as stop:
-            return progress, stop.value
+    return drive(N.train_nerf(state["rays"], state["encoding"], state["cameras"], **{**TINY, **controls},
+                              rng=np.random.default_rng(0)))
 
 
 def test_pipeline_steps_in_order_and_registered():
