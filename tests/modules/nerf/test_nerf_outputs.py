@@ -179,3 +179,20 @@ def test_the_warm_up_names_a_view_it_does_not_have():
     with pytest.raises(InvalidControl) as info:
         drive(N.fit_image_2d(ImageSet((image,)), view=1, rng=np.random.default_rng(0)))
     assert info.value.field == "view"
+
+
+def test_vision_lab_export_nerf_ply_trains_and_writes_the_mesh(tmp_path):
+    import trimesh
+    from typer.testing import CliRunner
+
+    from lab import cli
+
+    out = tmp_path / "object.ply"
+    args = ["export", "nerf", "--format", "ply", "--out", str(out), "--option", "train_views=4", "--option",
+            "test_views=1", "--set", "train_nerf.method=grid", "--set", "train_nerf.grid_resolution=32",
+            "--set", "train_nerf.iterations=80", "--set", "train_nerf.batch_rays=512",
+            "--set", "extract_mesh.resolution=24", "--set", "extract_mesh.level=1"]
+    result = CliRunner().invoke(cli.app, args, prog_name="vision-lab")
+    assert result.exit_code == 0, result.output
+    assert "wrote the extracted mesh" in result.stdout
+    assert len(trimesh.load(out, process=False).vertices) > 100
