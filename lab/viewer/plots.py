@@ -4,6 +4,9 @@ uPlot labels the ticks of a log axis with at most three decimals, so 1e-4 reads 
 has no 0); :func:`log_axis` gives the decades with their own labels instead (JSON: viser sends the
 options as data, not functions). A chart's x axis ends where the data ends (:func:`x_scale`: a
 7-iteration run ends at 7, whatever its planned total).
+
+:func:`set_uplot` changes a drawn chart in place (its handle kept: see :mod:`lab.viewer.renderers` on why
+the viewer never removes and re-adds a GUI chart or picture to change it).
 """
 
 from __future__ import annotations
@@ -68,4 +71,45 @@ def chart_axes(x: np.ndarray, y: np.ndarray) -> tuple[dict[str, Any], tuple[dict
     return scales, (dict(PLAIN_AXIS), axis)
 
 
-__all__ = ["PLAIN_AXIS", "chart_axes", "decade_label", "log_axis", "spans_decades", "x_scale"]
+def _same_columns(a: tuple[np.ndarray, ...], b: tuple[np.ndarray, ...]) -> bool:
+    return len(a) == len(b) and all(np.shape(x) == np.shape(y) and np.array_equal(x, y, equal_nan=True)
+                                    for x, y in zip(a, b, strict=True))
+
+
+#: The chart options :func:`set_uplot` changes in place (the others are fixed when the chart is added).
+UPLOT_FIELDS = ("data", "series", "scales", "axes", "title")
+
+
+def set_uplot(handle: Any, **options: Any) -> None:
+    """Change a viser uPlot chart (``handle``) in place: ``data``, ``series``, ``scales``, ``axes``, ``title``
+    (each given one is set, and only when it differs: viser sends each change as its own update message).
+
+    The chart keeps its GUI element, so the browser never gets an update for an element it removed (viser's
+    client applies a frame's updates after its removals, and logs "Tried to update non-existent component"
+    for an element replaced within one frame). When the number of series changes, the data and the series
+    are set in the order that never leaves the page a series without its data column (uPlot draws a data
+    column without a series, not a series without data): data first when they grow, series first when they
+    shrink."""
+    unknown = sorted(set(options) - set(UPLOT_FIELDS))
+    if unknown:
+        raise TypeError(f"set_uplot sets {list(UPLOT_FIELDS)}, not {unknown}")
+    order = list(UPLOT_FIELDS)
+    if "series" in options and len(options["series"]) < len(handle.series):
+        order = ["series", "data", *order[2:]]
+    for name in order:
+        if name not in options:
+            continue
+        value = options[name]
+        if name == "data":
+            value = tuple(np.asarray(column, dtype=np.float64) for column in value)
+            if _same_columns(handle.data, value):
+                continue
+        elif name == "series":
+            value = tuple(value)
+        if name != "data" and getattr(handle, name) == value:
+            continue
+        setattr(handle, name, value)
+
+
+__all__ = ["PLAIN_AXIS", "UPLOT_FIELDS", "chart_axes", "decade_label", "log_axis", "set_uplot",
+           "spans_decades", "x_scale"]

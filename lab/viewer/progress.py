@@ -35,7 +35,7 @@ import numpy as np
 from lab.core.pipeline import RunRecord
 from lab.core.step import Progress
 from lab.viewer.gui import PLAIN_TITLE, StepProgressGui, TabGui
-from lab.viewer.plots import chart_axes
+from lab.viewer.plots import chart_axes, set_uplot
 from lab.viewer.text import format_number
 
 #: Minimum time between two GUI updates from progress snapshots, and between two preview draws.
@@ -172,7 +172,8 @@ class ProgressPanel:
 
     def show(self, state: ProgressState) -> None:
         """Put a step's latest snapshot on screen, in its folder (bar, text, loss plot whose x axis ends
-        at the last iteration, log scale with a label per decade when the losses span decades)."""
+        at the last iteration, log scale with a label per decade when the losses span decades), every widget
+        changed in place (they are made once per step row: :func:`lab.viewer.gui.add_step_progress`)."""
         widgets = self.widgets(state.step or "")
         if widgets is None:
             return
@@ -184,13 +185,8 @@ class ProgressPanel:
         if state.x:
             xs, ys = np.asarray(state.x), np.asarray(state.y)
             scales, axes = chart_axes(xs, ys)
-            plot = widgets.loss_plot
-            plot.data = (xs, ys)
-            if plot.scales != scales:
-                plot.scales = scales
-            if axes is not None and plot.axes != axes:
-                plot.axes = axes
-            plot.visible = True
+            set_uplot(widgets.loss_plot, data=(xs, ys), scales=scales, axes=axes)
+            widgets.loss_plot.visible = True
 
     def idle(self, history: Sequence[RunRecord]) -> None:
         """No step runs: nothing to cancel, a plain tab title; show how the last long step ended, and hide

@@ -30,7 +30,7 @@ import numpy as np
 
 from lab.core.values import (Cameras, Curve, GaussianSplats, Image, ImageSet, Mesh, PointCloud, Points2D,
                              Segments2D, Segments3D)
-from lab.viewer.plots import chart_axes
+from lab.viewer.plots import chart_axes, set_uplot
 
 #: Root of every node this module adds to a scene.
 SCENE_ROOT = "/lab"
@@ -404,7 +404,8 @@ def _gui_context(container: Any):
 
 
 class Renderer:
-    """Draws one value type. Subclasses set ``value_type`` and implement :meth:`draw`."""
+    """Draws one value type. Subclasses set ``value_type`` and implement :meth:`draw`; those whose drawing can
+    change in place implement :meth:`redraw` too."""
 
     value_type: type = object
     #: True for values drawn in the 3D scene, False for GUI-only ones (skipped without a GUI).
@@ -416,6 +417,16 @@ class Renderer:
 
     def draw(self, canvas: Canvas, name: str, value: Any, state: Mapping[str, Any], order: float) -> Drawn:
         raise NotImplementedError
+
+    def redraw(self, canvas: Canvas, name: str, value: Any, state: Mapping[str, Any], order: float,
+               drawn: Drawn) -> bool:
+        """Bring ``drawn`` (this renderer's drawing of an earlier value of ``name``) up to date with ``value``
+        by changing its handles in place; False when it cannot, and :class:`StateDrawer` then removes it and
+        draws the value anew. The default: it cannot (a scene node is replaced under its own name, which
+        viser's client handles in order). The GUI renderers always can, but for a chart changing kind: a GUI
+        picture or chart keeps its element for as long as its value is drawn (the module docstring says
+        why)."""
+        return False
 
 
 class PointCloudRenderer(Renderer):
@@ -602,8 +613,13 @@ class GaussianSplatsRenderer(Renderer):
         return Drawn(self.fingerprint(name, value, state, canvas), [handle])
 
 
+def _set_order(handle: Any, order: float) -> None:
+    if handle.order != order:
+        handle.order = order
+
+
 class ImageRenderer(Renderer):
-    """:class:`Image` -> a GUI image panel (with the overlays that name it)."""
+    """:class:`Image` -> a GUI image panel (with the overlays that name it), its picture changed in place."""
 
     value_type = Image
     in_scene = False
@@ -615,13 +631,84 @@ class ImageRenderer(Renderer):
         overlays = [o for _, o in overlays_of(state, name)]
         with _gui_context(canvas.images):
             handle = canvas.gui.add_image(overlay_view(value, overlays, min_side=PANEL_MIN_SIDE),
-                                          label=f"{name} ({value.width}x{value.height})", format="jpeg",
-                                          jpeg_quality=90, order=order)
-        return Drawn(self.fingerprint(name, value, state, canvas), [handle])
+                                          label=self.label(name, value), format="jpeg", jpeg_quality=90,
+                                          order=order)
+        return Drawn(self.fingerprint(name, value, state, canvas), [handle], parts={"image": handle})
+
+    def redraw(self, canvas, name, value: Image, state, order, drawn: Drawn) -> bool:
+        handle = drawn.parts["image"]
+        handle.image = overlay_view(value, [o for _, o in overlays_of(state, name)], min_side=PANEL_MIN_SIDE)
+        handle.label = self.label(name, value)
+        _set_order(handle, order)
+        return True
+
+    @staticmethod
+    def label(name: str, value: Image) -> str:
+        return f"{name} ({value.width}x{value.height})"
+
+
+class ImageSetPanel:
+    """The GUI of one image set: a folder holding a view slider and the picture of the view shown, made once
+    (:meth:`ImageSetRenderer.draw`) and then changed in place for every new value (:meth:`set`) or view
+    (:meth:`show`). The slider is hidden while the set has one view, the picture while it has none."""
+
+    def __init__(self, canvas: Canvas, name: str, order: float) -> None:
+        self.canvas, self.name = canvas, name
+        self.value: ImageSet = ImageSet(())
+        self.overlays: list[tuple[str, Points2D | Segments2D]] = []
+        gui = canvas.gui
+        with _gui_context(canvas.images):
+            self.folder = gui.add_folder(name, order=order)
+            with self.folder:
+                self.slider = gui.add_slider("view", min=0, max=1, step=1, initial_value=0, visible=False,
+                                             hint=f"which view of {name} to show")
+                self.picture = gui.add_image(np.zeros((8, 8, 3), np.uint8), label=name, format="jpeg",
+                                             jpeg_quality=90, visible=False)
+        #: The view the picture shows (the slider's callback skips a move to it: the code moved it).
+        self.shown: int | None = None
+        self.slider.on_update(lambda event: None if int(event.target.value) == self.shown else
+                              self.show(event.target.value))
+
+    def set(self, value: ImageSet, overlays: list[tuple[str, Points2D | Segments2D]], order: float) -> None:
+        """Show ``value`` with these overlays, at the view the canvas remembers for it (clamped)."""
+        self.value, self.overlays = value, overlays
+        n = len(value)
+        self.folder.label = f"{self.name} ({n} views)" if n else f"{self.name} (empty image set)"
+        _set_order(self.folder, order)
+        view = min(max(self.canvas.views.get(self.name, 0), 0), max(n - 1, 0))
+        self.shown = view
+        if n > 1:
+            if self.slider.value > n - 1:  # never a value beyond the slider's end, not even for a moment
+                self.slider.value = view
+            self.slider.max = n - 1
+        self.slider.visible = n > 1
+        self.picture.visible = n > 0
+        self.show(view)
+
+    def caption(self, index: int) -> str:
+        parts = [f"{self.name}[{index}] {self.value.names[index]}"]
+        for overlay_name, overlay in self.overlays:
+            parts.append(f"{overlay_name}: {int(_on_view(overlay, index).sum())}")
+        return " | ".join(parts)
+
+    def show(self, index: int) -> None:
+        """Show view ``index`` (clamped) in the picture, and on the slider."""
+        n = len(self.value)
+        if n == 0:
+            return
+        index = min(max(int(index), 0), n - 1)
+        self.canvas.views[self.name] = index
+        self.shown = index
+        self.picture.image = overlay_view(self.value[index], [o for _, o in self.overlays], view=index,
+                                          min_side=PANEL_MIN_SIDE)
+        self.picture.label = self.caption(index)
+        if n > 1 and self.slider.value != index:
+            self.slider.value = index
 
 
 class ImageSetRenderer(Renderer):
-    """:class:`ImageSet` -> a GUI image panel with a view slider; 2D overlays drawn into each view.
+    """:class:`ImageSet` -> a GUI image panel with a view slider (an :class:`ImageSetPanel`); 2D overlays
+    drawn into each view.
 
     Overlays are the :class:`Points2D` / :class:`Segments2D` in state whose ``image`` is this
     set's name (e.g. detected corners, and reprojection residuals magnified by the module);
@@ -635,65 +722,53 @@ class ImageSetRenderer(Renderer):
         return (id(value), tuple(id(o) for _, o in overlays_of(state, name)))
 
     def draw(self, canvas, name, value: ImageSet, state, order) -> Drawn:
-        drawn = Drawn(self.fingerprint(name, value, state, canvas))
-        if len(value) == 0:
-            with _gui_context(canvas.images):
-                drawn.handles.append(canvas.gui.add_markdown(f"**{name}**: empty image set", order=order))
-            return drawn
-        overlays = overlays_of(state, name)
-        view = min(max(canvas.views.get(name, 0), 0), len(value) - 1)
-        canvas.views[name] = view
-
-        def caption(index: int) -> str:
-            parts = [f"{name}[{index}] {value.names[index]}"]
-            for overlay_name, overlay in overlays:
-                parts.append(f"{overlay_name}: {int(_on_view(overlay, index).sum())}")
-            return " | ".join(parts)
-
-        with _gui_context(canvas.images):
-            folder = canvas.gui.add_folder(f"{name} ({len(value)} views)", order=order)
-            drawn.handles.append(folder)
-            with folder:
-                slider = None
-                if len(value) > 1:
-                    slider = canvas.gui.add_slider("view", min=0, max=len(value) - 1, step=1,
-                                                   initial_value=view,
-                                                   hint=f"which view of {name} to show")
-                image = canvas.gui.add_image(overlay_view(value[view], [o for _, o in overlays], view=view,
-                                                          min_side=PANEL_MIN_SIDE),
-                                             label=caption(view), format="jpeg", jpeg_quality=90)
-
-        def show(index: int) -> None:
-            index = min(max(int(index), 0), len(value) - 1)
-            canvas.views[name] = index
-            image.image = overlay_view(value[index], [o for _, o in overlays], view=index,
-                                       min_side=PANEL_MIN_SIDE)
-            image.label = caption(index)
-            if slider is not None and slider.value != index:
-                slider.value = index
-
-        if slider is not None:
-            slider.on_update(lambda event: show(event.target.value))
-        drawn.refresh_view = lambda: show(canvas.views.get(name, 0))
-        drawn.parts.update(slider=slider, image=image)
+        panel = ImageSetPanel(canvas, name, order)
+        drawn = Drawn(self.fingerprint(name, value, state, canvas), [panel.folder],
+                      refresh_view=lambda: panel.show(canvas.views.get(name, 0)),
+                      parts={"panel": panel, "slider": panel.slider, "image": panel.picture})
+        panel.set(value, overlays_of(state, name), order)
         return drawn
+
+    def redraw(self, canvas, name, value: ImageSet, state, order, drawn: Drawn) -> bool:
+        drawn.parts["panel"].set(value, overlays_of(state, name), order)
+        return True
 
 
 class CurveRenderer(Renderer):
-    """:class:`Curve` -> a uPlot chart (line, scatter) or a bar chart image where the worst bar is red."""
+    """:class:`Curve` -> a uPlot chart (line, scatter) or a bar chart image where the worst bar is red; a new
+    curve of the same kind changes the chart in place (:func:`lab.viewer.plots.set_uplot`)."""
 
     value_type = Curve
     in_scene = False
 
+    @staticmethod
+    def as_picture(value: Curve) -> bool:
+        return value.kind == "bar" or len(value.x) < 2
+
     def draw(self, canvas, name, value: Curve, state, order) -> Drawn:
         title = value.title or name
         with _gui_context(canvas.plots):
-            if value.kind == "bar" or len(value.x) < 2:
+            if self.as_picture(value):
                 chart = curve_image(replace(value, title=""))  # the panel's label is the title
                 handle = canvas.gui.add_image(chart, label=title, format="png", order=order)
             else:
                 handle = add_uplot(canvas.gui, value, title=title, order=order, name=name)
-        return Drawn(self.fingerprint(name, value, state, canvas), [handle])
+        return Drawn(self.fingerprint(name, value, state, canvas), [handle],
+                     parts={"chart": handle, "picture": self.as_picture(value)})
+
+    def redraw(self, canvas, name, value: Curve, state, order, drawn: Drawn) -> bool:
+        if drawn.parts["picture"] != self.as_picture(value):
+            return False  # a chart turned into a picture (or back): another kind of element
+        handle, title = drawn.parts["chart"], value.title or name
+        if drawn.parts["picture"]:
+            handle.image = curve_image(replace(value, title=""))
+            handle.label = title
+        else:
+            config = uplot_config(value, name)
+            set_uplot(handle, data=config["data"], series=config["series"], scales=config["scales"],
+                      axes=config["axes"], title=title)
+        _set_order(handle, order)
+        return True
 
 
 def uplot_config(curve: Curve, name: str = "") -> dict[str, Any]:
@@ -747,11 +822,13 @@ class StateDrawer:
         self.canvas = canvas
         self.drawn: dict[str, Drawn] = {}
         self.errors: dict[str, str] = {}
+        self.kept: dict[str, Any] = {}
 
     def sync(self, state: Mapping[str, Any], *, order: Mapping[str, float] | None = None) -> list[str]:
         """Draw ``state``; returns the names (re)drawn. A value whose drawing fails is skipped
         and its error kept in :attr:`errors` (a bad value never breaks the rest of the scene)."""
         self.canvas.extent = scene_extent(state.values())
+        self.kept = dict(state)  # fingerprints are ids: the values they name must live until the next sync
         drawable = {name: value for name, value in state.items() if self._draws(value)}
         for name in [n for n in self.drawn if n not in drawable]:
             self.drawn.pop(name).remove()
@@ -766,11 +843,14 @@ class StateDrawer:
             old = self.drawn.get(name)
             if old is not None and old.fingerprint == fingerprint:
                 continue
-            if old is not None:
-                old.remove()
-                del self.drawn[name]
             try:
-                self.drawn[name] = renderer.draw(self.canvas, name, value, state, float(position))
+                if old is not None and renderer.redraw(self.canvas, name, value, state, float(position), old):
+                    old.fingerprint = fingerprint
+                else:
+                    if old is not None:
+                        old.remove()
+                        del self.drawn[name]
+                    self.drawn[name] = renderer.draw(self.canvas, name, value, state, float(position))
                 self.errors.pop(name, None)
                 changed.append(name)
             except Exception as exc:  # report it in the GUI, keep drawing the rest
@@ -795,6 +875,7 @@ class StateDrawer:
             drawn.remove()
         self.drawn.clear()
         self.errors.clear()
+        self.kept = {}
 
 
 __all__ = ["CLOUD_COLORS", "FRUSTUM_SHARE", "OVERLAY_TYPES", "PLAIN_MESH_OPACITY", "RENDERERS", "SCENE_ROOT",

@@ -628,9 +628,14 @@ class ClientView:
         return {name: order.get(name, 0.0) for name in state}
 
     def _preview(self, values: Mapping[str, Any]) -> None:
-        """Draw a long step's preview values (a progress snapshot's) over the session's state."""
-        if self.session is not None:
-            preview = {**self.session.state, **values}
+        """Draw a long step's preview values (a progress snapshot's) over the session's state, and over what
+        the plan dropped and will write again (:func:`held_during_plan`, as :meth:`refresh` draws it: a value
+        that vanished for a preview would be removed and drawn anew at the next refresh)."""
+        session = self.session
+        if session is not None:
+            state = dict(session.state)
+            held = held_during_plan(session, self._drawn, state, self.runner.planned)
+            preview = {**held, **state, **values}
             self.drawer.sync(preview, order=self._order(preview))
 
     def framing(self, state: Mapping[str, Any]) -> tuple[np.ndarray, np.ndarray] | None:

@@ -250,10 +250,17 @@ def test_image_set_panel_has_a_view_slider_and_overlays(server, gui_drawer):
     assert "images[0] v0" in picture.label and "corners: 1" in picture.label
     gui_drawer.show_view("images", 3)  # e.g. a frustum was clicked
     assert slider.value == 3 and "images[3] v3" in picture.label
-    gui_drawer.sync({"images": images})  # corners gone: the image set is redrawn without them
-    assert gui_drawer.drawn["images"] is not drawn
-    assert "corners" not in gui_drawer.drawn["images"].parts["image"].label
+    assert gui_drawer.sync({"images": images}) == ["images"]  # corners gone: redrawn without them, in place
+    assert gui_drawer.drawn["images"] is drawn and drawn.parts["image"] is picture
+    assert "corners" not in picture.label and "images[3] v3" in picture.label
     assert gui_drawer.canvas.views["images"] == 3  # the view shown survives a redraw
+    fewer = ImageSet(images.images[:2])  # a new set with fewer views: the slider shrinks, the view is clamped
+    gui_drawer.sync({"images": fewer})
+    assert (slider.max, slider.value, slider.visible) == (1, 1, True) and "images[1] v1" in picture.label
+    gui_drawer.sync({"images": ImageSet(images.images[:1])})  # one view: no slider
+    assert not slider.visible and picture.visible and "images[0] v0" in picture.label
+    gui_drawer.sync({"images": ImageSet(())})  # none: no picture, the folder says so
+    assert not picture.visible and "empty" in drawn.handles[0].label
 
 
 def test_image_set_view_switch_redraws_the_picture(server, gui_drawer, monkeypatch):

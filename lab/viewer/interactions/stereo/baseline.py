@@ -22,6 +22,7 @@ from lab.core.values import Image
 from lab.modules.stereo import MAX_VOLUME_ENTRIES, depth_from_disparity
 from lab.viewer.interactions import Interaction, InteractionContext
 from lab.viewer.interactions.stereo.costs import last_params
+from lab.viewer.plots import set_uplot
 
 BASELINE_COLORS = ("#d62728", "#1f77b4", "#2ca02c", "#ff7f0e", "#9467bd", "#8c564b")
 
@@ -162,7 +163,6 @@ class BaselineExplorer(Interaction):
         self._key: tuple | None = None
         self._state: Mapping[str, Any] = {}
         self._plot: Any = None
-        self._plot_series = -1
         session = ctx.session
         gui = ctx.gui
         self.option = next((o for d in session.pipeline.datasets if d.name == session.dataset
@@ -271,7 +271,6 @@ class BaselineExplorer(Interaction):
     def _remove_plot(self) -> None:
         self.untrack(self._plot)
         self._plot = None
-        self._plot_series = -1
 
     def _draw(self) -> None:
         c = self.current
@@ -279,16 +278,13 @@ class BaselineExplorer(Interaction):
             return
         config = uncertainty_plot(c, self.previous, *self.near_far, preview=self._preview_record())
         title = "depth uncertainty u_z = z² u_d / (f B) (m) over depth"
-        if self._plot is not None and self._plot_series == len(config["series"]):
-            self._plot.data = config["data"]
-            self._plot.series = config["series"]
+        if self._plot is not None:  # changed in place, however many baselines it shows (set_uplot says why)
+            set_uplot(self._plot, data=config["data"], series=config["series"])
         else:
-            self._remove_plot()
             with self.ctx.plots:
                 self._plot = self.track(self.ctx.gui.add_uplot(
                     config["data"], config["series"], scales=config["scales"], legend=config["legend"],
                     title=title, aspect=1.4, order=1001.0))
-            self._plot_series = len(config["series"])
         near, far = self.near_far
         mid = 0.5 * (near + far)
         u_mid = depth_uncertainty_curve(np.array([mid]), focal_px=c.focal_px, baseline=c.baseline,

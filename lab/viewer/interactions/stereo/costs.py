@@ -26,6 +26,7 @@ from lab.modules.stereo import COSTS, cost_curves
 from lab.viewer.drawing import draw_overlays, frustum_segments
 from lab.viewer.interactions import Interaction, InteractionContext, LegendEntry, NamedHandles, Swatch
 from lab.viewer.interactions.stereo.maps import truth_disparity
+from lab.viewer.plots import set_uplot
 from lab.viewer.renderers import FRUSTUM_MAX_SIDE, overlay_view
 
 #: Colours (RGB, 0-255) of what the interactions draw.
@@ -278,7 +279,6 @@ class CostCurveExplorer(Interaction):
         self._base: tuple[int, np.ndarray] | None = None
         self._rig_key: tuple | None = None
         self._plot: Any = None
-        self._plot_shape: tuple[int, ...] | None = None
         gui = ctx.gui
         self.source_md = self.track(gui.add_markdown("Run rectify_pair: the costs compare the rectified "
                                                      "pair."))
@@ -535,26 +535,21 @@ class CostCurveExplorer(Interaction):
     def _remove_plot(self) -> None:
         self.untrack(self._plot)
         self._plot = None
-        self._plot_shape = None
 
     def _draw_plot(self) -> None:
         curves, left = self.curves, self.left
         if curves is None or left is None:
             return
         config = cost_plot(curves, session_cost=self._session_cost())
-        shape = tuple(len(a) for a in config["data"])
         title = f"matching costs at ({curves.pixel[0]}, {curves.pixel[1]}), each scaled to [0, 1]"
-        if self._plot is not None and shape == self._plot_shape:
-            self._plot.data = config["data"]
-            self._plot.series = config["series"]
-            self._plot.title = title
+        if self._plot is not None:  # changed in place, whatever its shape (set_uplot says why)
+            set_uplot(self._plot, data=config["data"], series=config["series"], scales=config["scales"],
+                      title=title)
         else:
-            self._remove_plot()
             with self.ctx.plots:
                 self._plot = self.track(self.ctx.gui.add_uplot(
                     config["data"], config["series"], scales=config["scales"], legend=config["legend"],
                     title=title, aspect=1.4, order=1000.0))
-            self._plot_shape = shape
         session_cost = self._session_cost()
         rows = ["| cost | min at d | |", "|---|---|---|"]
         for label, d in zip(curves.labels, curves.minima, strict=True):
