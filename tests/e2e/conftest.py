@@ -47,6 +47,25 @@ _PROJECT = """([name, point]) => {
   return [rect.left + (ndc.x + 1) / 2 * rect.width, rect.top + (1 - ndc.y) / 2 * rect.height];
 }"""
 
+_PROJECT_MANY = """([name, points]) => {
+  const mutable = window.__viserMutable;
+  const object = mutable.nodeRefFromName[name];
+  if (!object) return null;
+  object.updateWorldMatrix(true, false);
+  mutable.camera.updateMatrixWorld();
+  const rect = mutable.canvas.getBoundingClientRect();
+  return points.map((point) => {
+    const world = object.localToWorld(object.position.clone().set(point[0], point[1], point[2]));
+    const ndc = world.clone().project(mutable.camera);
+    return [rect.left + (ndc.x + 1) / 2 * rect.width, rect.top + (1 - ndc.y) / 2 * rect.height];
+  });
+}"""
+
+_ON_CANVAS = """(points) => {
+  const canvas = window.__viserMutable.canvas;
+  return points.map(([x, y]) => document.elementFromPoint(x, y) === canvas);
+}"""
+
 
 class ViewerPage:
     """A viewer tab in Playwright: GUI folders and inputs by label, and the scene nodes it received."""
@@ -136,6 +155,40 @@ class ViewerPage:
             return None
         decoded = cv2.imdecode(np.asarray(data, dtype=np.uint8), cv2.IMREAD_COLOR)
         return decoded[:, :, ::-1].copy()
+
+    def screen_points(self, name: str, local_points: Any) -> np.ndarray | None:
+        """Where the points ``(N, 3)`` given in node ``name``'s frame are drawn on the page now, ``(N, 2)``
+        CSS px (None: the page has no such node)."""
+        points = np.asarray(local_points, dtype=np.float64).reshape(-1, 3).tolist()
+        found = self.page.evaluate(_PROJECT_MANY, [name, points])
+        return None if found is None else np.array(found, dtype=np.float64).reshape(-1, 2)
+
+    def on_canvas(self, points: Any) -> np.ndarray:
+        """For each page point ``(x, y)``: whether a click there reaches the 3D canvas (no panel, notification
+        or other element covers it)."""
+        xy = np.asarray(points, dtype=np.float64).reshape(-1, 2).tolist()
+        return np.array(self.page.evaluate(_ON_CANVAS, xy), dtype=bool)
+
+    def settle(self, name: str, local_points: Any, *, timeout: float = 15.0) -> np.ndarray | None:
+        """:meth:`screen_points` once they stay put (the camera glides to its framing), at most ``timeout``
+        s."""
+        deadline = time.monotonic() + timeout
+        seen = self.screen_points(name, local_points)
+        while time.monotonic() < deadline:
+            self.page.wait_for_timeout(400)
+            now = self.screen_points(name, local_points)
+            if seen is not None and now is not None and np.allclose(now, seen, atol=0.5):
+                return now
+            seen = now
+        return seen
+
+    def dismiss_software_rendering_notice(self) -> None:
+        """Close viser's "Software WebGL rendering detected" notice (shown without a GPU) as a user does: it
+        covers the top of the scene."""
+        notice = self.page.locator(".mantine-Notification-root", has_text="Software WebGL rendering detected")
+        if notice.count() and notice.first.is_visible():
+            notice.first.locator("button").first.click()
+            notice.first.wait_for(state="hidden", timeout=WAIT_MS)
 
     def click_node(self, name: str, local_point: tuple[float, float, float]) -> None:
         """Click with the mouse where ``local_point`` (in node ``name``'s frame) is drawn on the canvas."""

@@ -245,7 +245,7 @@ def test_run_all_from_the_landing_page_shows_the_module(served_lab, shared_brows
         _wait_for_the_end(page, steps)
         page.wait_for_timeout(1500)  # the last drawings and legend arrive
         on_screen = _settled_screen_box(page)
-        _dismiss_software_rendering_notice(page)
+        ViewerPage(page).dismiss_software_rendering_notice()
         page.screenshot(path=str(OUTPUT / f"{module}-run-all.png"))
 
         session_id = re.search(r"session=(\w+)", page.url).group(1)
@@ -262,15 +262,6 @@ def test_run_all_from_the_landing_page_shows_the_module(served_lab, shared_brows
     finally:
         page.screenshot(path=str(OUTPUT / f"{module}-last.png"))
         page.close()
-
-
-def _dismiss_software_rendering_notice(page: Any) -> None:
-    """Close viser's "Software WebGL rendering detected" notice (shown without a GPU) as a user does, so that
-    the screenshot shows the scene beneath it."""
-    notice = page.locator(".mantine-Notification-root", has_text="Software WebGL rendering detected")
-    if notice.count() and notice.first.is_visible():
-        notice.first.locator("button").first.click()
-        notice.first.wait_for(state="hidden", timeout=WAIT_MS)
 
 
 def _progress_problems(records: list[dict[str, Any]], long_steps: list[tuple[str, str]],
