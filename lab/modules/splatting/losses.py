@@ -14,29 +14,32 @@ _C2 = 0.03**2
 
 def gaussian_window(size: int = 11, sigma: float = 1.5, *, dtype: torch.dtype = torch.float32,
                     device: str | torch.device = "cpu") -> torch.Tensor:
-    """The normalized ``size x size`` Gaussian window (sigma 1.5 px) of SSIM, ``(size, size)``."""
+    """The normalized 1D Gaussian ``(size,)`` (sigma 1.5 px) whose outer product is SSIM's window."""
     x = torch.arange(size, dtype=torch.float64) - (size - 1) / 2
     g = torch.exp(-x * x / (2 * sigma * sigma))
-    g = g / g.sum()
-    return torch.outer(g, g).to(dtype=dtype, device=device)
+    return (g / g.sum()).to(dtype=dtype, device=device)
 
 
 def ssim(image: torch.Tensor, target: torch.Tensor, *, window: int = 11) -> torch.Tensor:
     """Mean structural similarity (Wang et al. 2004, eq. 13) of two ``(H, W, C)`` images, with local
-    statistics under an 11 x 11 Gaussian window (sigma 1.5), zero-padded as the paper's code does."""
+    statistics under an 11 x 11 Gaussian window (sigma 1.5), zero-padded as the paper's code does; the
+    window is separable, so each blur is a column pass then a row pass (the same sums, 5x fewer products)."""
     channels = image.shape[-1]
-    kernel = gaussian_window(window, dtype=image.dtype, device=image.device)
-    kernel = kernel.expand(channels, 1, window, window)
+    g = gaussian_window(window, dtype=image.dtype, device=image.device)
+    rows = g.reshape(1, 1, window, 1).expand(channels, 1, window, 1)
+    cols = g.reshape(1, 1, 1, window).expand(channels, 1, 1, window)
     x, y = image.permute(2, 0, 1)[None], target.permute(2, 0, 1)[None]
     pad = window // 2
 
     def blur(z: torch.Tensor) -> torch.Tensor:
-        return F.conv2d(z, kernel, padding=pad, groups=channels)
+        z = F.conv2d(z, rows, padding=(pad, 0), groups=channels)
+        return F.conv2d(z, cols, padding=(0, pad), groups=channels)
 
-    mu_x, mu_y = blur(x), blur(y)
-    var_x = blur(x * x) - mu_x**2
-    var_y = blur(y * y) - mu_y**2
-    cov = blur(x * y) - mu_x * mu_y
+    stacked = blur(torch.cat([x, y, x * x, y * y, x * y], dim=0))          # one batch of 5 maps
+    mu_x, mu_y, xx, yy, xy = stacked.unbind(0)
+    var_x = xx - mu_x**2
+    var_y = yy - mu_y**2
+    cov = xy - mu_x * mu_y
     value = ((2 * mu_x * mu_y + _C1) * (2 * cov + _C2)) / ((mu_x**2 + mu_y**2 + _C1) * (var_x + var_y + _C2))
     return value.mean()
 

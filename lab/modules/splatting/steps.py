@@ -67,12 +67,15 @@ def initial_model(points: np.ndarray, colors: np.ndarray, *, opacity: float = 0.
                       np.full(n, math.log(opacity / (1 - opacity))), sh, sh_degree=0)
 
 
-def initialize_gaussians(bounds: SceneBounds, *, points: Annotated[int, Range(4, 200000)] = 5000,
+def initialize_gaussians(bounds: SceneBounds, *, points: Annotated[int, Range(4, 200000)] = 1000,
                          opacity: Annotated[float, Range(0.001, 0.99)] = 0.1,
                          rng: np.random.Generator) -> InitResult:
     """Gaussians at random points of the scene box (the paper's initialisation for its synthetic scenes,
     section 7.1: 100k uniform points; the SfM points of a reconstruction come next), with random base
-    colours, scaled by their neighbours' distances (:func:`initial_model`).
+    colours, scaled by their neighbours' distances (:func:`initial_model`). On a CPU fewer start better: a
+    training iteration costs what the Gaussians overlapping each pixel cost, and the density control adds
+    Gaussians where the views need them (measured on the synthetic object, 30 s of training: 1000 points
+    27.5 dB held-out after 668 iterations, 5000 points 13.4 dB after 69).
 
     The box is the cube of half-side ``bounds.radius`` about ``bounds.center``.
 
