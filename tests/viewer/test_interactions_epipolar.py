@@ -541,3 +541,19 @@ def test_without_k_a_pick_gives_the_line_but_no_ray(server, store, loaded):
     view.run("estimate_fundamental_ransac", until=True)
     assert explorer.pick_pixel(*loaded.truth["x1_exact"][0]) is not None
     assert explorer.scene_nodes() == [] and explorer.last_pick.segment is not None
+
+
+def test_camera_labels_stand_apart_beside_their_image_planes():
+    from lab.viewer.interactions.epipolar.geometry import label_anchors
+
+    K = np.array([[300.0, 0, 159.5], [0, 300.0, 119.5], [0, 0, 1]])
+    R2, t2 = np.eye(3), np.array([-0.1, 0.0, 0.0])  # camera 2 a short baseline to the right of camera 1
+    planes = [image_placement(K, R, t, 320, 240, 0.05).corners for R, t in ((np.eye(3), np.zeros(3)), (R2, t2))]
+    centres = np.stack([np.zeros(3), camera_centre(R2, t2)])
+    anchors = label_anchors(centres, planes, spread=0.2)
+    assert anchors[0, 0] < planes[0][:, 0].min() - 0.19 and anchors[1, 0] > planes[1][:, 0].max() + 0.19
+    assert anchors[1, 0] - anchors[0, 0] >= 2 * 0.2 + 0.1  # apart by both spreads and the baseline
+    assert np.all(anchors[:, 1] < planes[0][:, 1].min())  # above the planes (y is down)
+    seen = anchors[:, :2] / (anchors[:, 2:] + 3.0)  # seen from 3 behind the cameras, along their axis
+    assert abs(seen[1, 0] - seen[0, 0]) > 0.1
+    np.testing.assert_allclose(label_anchors(centres[:1], planes[:1], spread=0.2), centres[:1])  # one camera

@@ -23,13 +23,17 @@ from lab.geometry.camera_views import camera_centre, click_to_pixel, image_place
 from lab.viewer.drawing import draw_overlays, frustum_segments
 from lab.viewer.interactions import Interaction, InteractionContext, LegendEntry, NamedHandles, Swatch
 from lab.viewer.interactions.epipolar.geometry import (GEOMETRY_READS, PICK_COLOR, POINT_COLOR, PixelPick,
-                                                       PointMove, TwoViewGeometry, explorer_overlays, move,
-                                                       observed_pairs, pick, scene_depths, two_view_geometry)
+                                                       PointMove, TwoViewGeometry, explorer_overlays,
+                                                       label_anchors, move, observed_pairs, pick,
+                                                       scene_depths, two_view_geometry)
 from lab.viewer.renderers import (FRUSTUM_MAX_SIDE, PANEL_MAX_SIDE, PANEL_MIN_SIDE, overlay_view,
                                   wxyz_from_matrix)
 
 #: Colours (RGB, 0-255) of the two cameras' frustums.
 CAMERA_COLORS = ((40, 90, 200), (230, 120, 20))
+#: How far apart along the baseline the labels "camera 1" and "camera 2" are pushed, at least: a share of the
+#: scene's extent (:func:`lab.viewer.interactions.epipolar.geometry.label_anchors`).
+LABEL_SPREAD = 0.1
 
 
 # ----------------------------------------------------------------------------------------------------
@@ -263,22 +267,30 @@ class EpipolarExplorer(Interaction):
     def _draw_rig(self) -> None:
         """Both cameras: a frustum and the image as a clickable plane at ``self.depth``."""
         geometry = self._require_geometry()
+        placed: dict[int, tuple[np.ndarray, np.ndarray]] = {}  # image -> (centre, plane corners)
         for image in (1, 2):
             camera = geometry.camera(image)
             if camera is None:
                 continue
             width, height = geometry.sizes[image - 1]
-            placement = image_placement(*camera, width, height, self.depth)
-            centre = camera_centre(camera[1], camera[2])
-            self._draw_camera(image, centre, frustum_segments(centre, placement.corners))
+            placed[image] = (camera_centre(camera[1], camera[2]),
+                             image_placement(*camera, width, height, self.depth).corners)
+        if not placed:
+            return
+        centres = np.stack([centre for centre, _ in placed.values()])
+        baseline = float(np.linalg.norm(centres[-1] - centres[0]))
+        anchors = label_anchors(centres, [corners for _, corners in placed.values()],
+                                spread=max(0.5 * baseline, LABEL_SPREAD * self.ctx.extent()))
+        for (image, (centre, corners)), anchor in zip(placed.items(), anchors, strict=True):
+            self._draw_camera(image, frustum_segments(centre, corners), anchor)
 
-    def _draw_camera(self, image: int, centre: np.ndarray, segments: np.ndarray) -> None:
+    def _draw_camera(self, image: int, segments: np.ndarray, label_at: np.ndarray) -> None:
         scene, node = self.ctx.scene, self.ctx.node
         self.nodes.put(f"rig/camera{image}/frustum", lambda: scene.add_line_segments(
             node("rig", f"camera{image}", "frustum"), points=segments, colors=CAMERA_COLORS[image - 1],
             thickness=2.0, thickness_units="screen"))
         self.nodes.put(f"rig/camera{image}/label", lambda: scene.add_label(
-            node("rig", f"camera{image}", "label"), f"camera {image}", position=tuple(centre)))
+            node("rig", f"camera{image}", "label"), f"camera {image}", position=tuple(label_at)))
 
     def _image_plane(self, image: int, texture: np.ndarray) -> None:
         geometry = self._require_geometry()

@@ -333,6 +333,34 @@ def explorer_overlays(geometry: TwoViewGeometry, picked: PixelPick | None,
     return overlays
 
 
+def label_anchors(centres: np.ndarray, planes: list[np.ndarray], *, spread: float) -> np.ndarray:
+    """Where the explorer writes "camera 1" and "camera 2": ``(n, 3)``, one per camera centre ``centres[i]``
+    with its image plane's corners ``planes[i]`` (``(4, 3)``: top-left, top-right, bottom-right, bottom-left,
+    :func:`lab.geometry.camera_views.image_placement`).
+
+    One camera: its centre. Two: above the outer top corner of each plane (camera 1's on the side away from
+    camera 2, and back), pushed apart along the baseline by ``spread`` and lifted by a fifth of it. Seen from
+    behind the cameras, as the tab's first camera looks, the centres of a short baseline are a few pixels
+    apart on screen and labels there overlap; these are at least ``2 spread`` apart along the baseline.
+    """
+    centres = np.asarray(centres, dtype=np.float64).reshape(-1, 3)
+    if len(centres) != 2:
+        return centres.copy()
+    corners = [np.asarray(c, dtype=np.float64).reshape(4, 3) for c in planes]
+    baseline = centres[1] - centres[0]
+    if np.linalg.norm(baseline) < 1e-12:  # one centre: apart along camera 1's image rows instead
+        baseline = corners[0][1] - corners[0][0]
+    along = baseline / max(float(np.linalg.norm(baseline)), 1e-300)
+    anchors = []
+    for side, plane in zip((-1.0, 1.0), corners, strict=True):
+        top = plane[:2]  # its top-left and top-right corners
+        outer = top[int(np.argmax(side * (top @ along)))]
+        lift = plane[0] - plane[3]  # bottom-left to top-left: up in the picture
+        lift = lift / max(float(np.linalg.norm(lift)), 1e-300)
+        anchors.append(outer + side * spread * along + 0.2 * spread * lift)
+    return np.stack(anchors)
+
+
 __all__ = ["GEOMETRY_READS", "PICK_COLOR", "POINT_COLOR", "PixelPick", "PointMove", "TwoViewGeometry",
-           "check_pixel", "explorer_overlays", "matrix_or_none", "move", "observed_pairs", "pick",
-           "scene_depths", "two_view_geometry"]
+           "check_pixel", "explorer_overlays", "label_anchors", "matrix_or_none", "move", "observed_pairs",
+           "pick", "scene_depths", "two_view_geometry"]
