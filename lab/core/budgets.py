@@ -13,6 +13,12 @@ the lab's own datasets are far below) and keep one request under about a gigabyt
     Views x width x height that a generated dataset's options may ask for (the synthetic
     checkerboard, rendered scenes and pairs), checked before anything is rendered, and the total
     pixels of the images of one upload request.
+``MAX_STEREO_BYTES``
+    Memory that stereo's semi-global matching may hold for one pair (1 GiB). A cost volume too
+    large to keep whole is aggregated by rows (:mod:`lab.modules.stereo.lean`: 16-bit path sums of
+    every pixel and disparity, about ``width x height x disparities x 2`` bytes); a pair needing more
+    is refused before anything is computed, naming the memory it needs and the dataset's
+    ``downsample`` option. A 1.5-megapixel pair with 256 disparities needs about 0.85 GiB.
 ``MAX_JSON_NUMBERS``
     Numbers in one ``format=json`` answer (a JSON number costs about 20 bytes of text and far more
     as a Python object while it is built); larger values are refused and pointed to ``npy``/``png``.
@@ -31,6 +37,7 @@ from lab.core.errors import CapacityExceeded
 
 MAX_IMAGE_PIXELS: int = 50_000_000
 MAX_DATASET_PIXELS: int = 64 * 2**20
+MAX_STEREO_BYTES: int = 2**30
 MAX_JSON_NUMBERS: int = 2**20
 MAX_JSON_DEPTH: int = 64
 
@@ -74,5 +81,5 @@ def check_upload_pixels(pixels: int, *, field: str) -> None:
                                       "per request (?append=true adds views)")
 
 
-__all__ = ["MAX_DATASET_PIXELS", "MAX_IMAGE_PIXELS", "MAX_JSON_DEPTH", "MAX_JSON_NUMBERS",
+__all__ = ["MAX_DATASET_PIXELS", "MAX_IMAGE_PIXELS", "MAX_JSON_DEPTH", "MAX_JSON_NUMBERS", "MAX_STEREO_BYTES",
            "check_dataset_pixels", "check_image_pixels", "check_upload_pixels", "megapixels"]

@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 from stereo_pairs import shifted_pair
 
-from lab.core import Image, InvalidControl, InvalidValue, kernels
+from lab.core import CapacityExceeded, Image, InvalidControl, InvalidValue, kernels
 from lab.modules.stereo import (COSTS, MAX_VOLUME_ENTRIES, aggregate_costs, best_two_costs,
                                 best_two_costs_reference, box_mean, box_mean_reference, census_costs,
                                 census_transform, census_transform_reference, cost_volume, costs_around,
@@ -164,12 +164,18 @@ def test_cost_volume_errors():
 
 
 def test_cost_volume_refuses_a_volume_too_large():
-    """Refused before any cost is computed: 512 x 1024 pixels at 1001 disparities is 8 times the limit."""
+    """Refused before any cost is computed: 512 x 1024 pixels at 1001 disparities is 8 times the volume kept
+    whole; census costs would be aggregated by rows, but their 16-bit sums alone need 1001 MiB, over the
+    memory budget; other costs are never aggregated by rows."""
     image = Image(np.zeros((512, 1024), np.float32))
     assert MAX_VOLUME_ENTRIES < 512 * 1024 * 1001
-    with pytest.raises(InvalidControl, match="max_disparity") as caught:
+    with pytest.raises(CapacityExceeded, match="max_disparity") as caught:
         cost_volume(image, image, max_disparity=1000)
-    assert f"{MAX_VOLUME_ENTRIES:,} allowed" in caught.value.reason
+    assert "MAX_STEREO_BYTES" in caught.value.reason and "downsample=2 needs about" in caught.value.reason
+    assert caught.value.field == "max_disparity" and caught.value.status == 413
+    with pytest.raises(InvalidControl, match="max_disparity") as caught:
+        cost_volume(image, image, cost="sad", max_disparity=1000)
+    assert f"{MAX_VOLUME_ENTRIES:,} allowed whole" in caught.value.reason and "census" in caught.value.reason
 
 
 # ----------------------------------------------------------------------------------------------------

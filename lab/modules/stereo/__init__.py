@@ -26,8 +26,13 @@ State names (float64 unless said):
     baseline              float              distance between the camera centres, metres
     disparity_offset      float              cx_right - cx_left of the rectified pair, pixels
                                              (0 after our rectification; Middlebury's ``doffs``)
-    cost_volume           (H, W, D) float32  matching costs (kept in state: at most 2**26 entries)
-    aggregated_cost       (H, W, D) float32  costs after aggregation (SGM), or the same array
+    disparity_features    Points2D           SIFT features matched along the rows, on ``left``, coloured by
+                                             their disparity
+    disparity_features_right  Points2D       the same features on ``right``
+    cost_volume           (H, W, D) float32  matching costs (kept in state: at most 2**26 entries; a
+                                             larger census volume is a CensusRows, its rows on demand)
+    aggregated_cost       (H, W, D) float32  costs after aggregation (SGM), or the same array (a
+                                             RowWinners of a volume aggregated by rows, :mod:`.lean`)
     disparity_wta         (H, W) int64       winner-take-all disparity of every pixel
     consistent            (H, W) bool        pixels that pass the left-right check
     disparity_subpixel    (H, W)             disparity refined by a parabola, every pixel
@@ -63,20 +68,24 @@ from lab.modules.stereo.datasets import (MOTORCYCLE_BASELINE_M, MOTORCYCLE_CENTR
                                          MOTORCYCLE_FOCAL_PX, folder, motorcycle, read_calibration,
                                          read_disparity, synthetic)
 from lab.modules.stereo.depth import depth_from_disparity
+from lab.modules.stereo.disparity_range import RangeMatches, estimate_max_disparity, match_range_features
 from lab.modules.stereo.evaluate import (BAD_THRESHOLDS, cost_curves, disparity_errors, error_map,
                                          evaluate_depth, evaluate_disparity, evaluate_left_right,
                                          evaluate_rectification, evaluate_subpixel, evaluate_winner_take_all,
                                          volume_curve)
 from lab.modules.stereo.filters import HOLE, colorize_disparity, fill_holes, remove_peaks
+from lab.modules.stereo.lean import (CensusRows, RowWinners, block_matching_rows, census_rows,
+                                     lean_memory_bytes, semi_global_matching_rows)
 from lab.modules.stereo.rectify import row_misalignment
 from lab.modules.stereo.reference import (best_two_costs_reference, box_mean_reference,
                                           census_transform_reference, hamming_costs_reference,
                                           right_disparity_reference, sgm_reference)
 from lab.modules.stereo.sgm import (SGM_DIRECTIONS, quantize_costs, semi_global_matching, sgm_inputs,
                                     volume_range)
-from lab.modules.stereo.steps import (DenseReconstruction, FilteredDisparity, RectifiedPair, aggregate_costs,
-                                      cost_volume, filter_disparity, left_right_check, reconstruct_points,
-                                      rectify_pair, refine_subpixel, winner_take_all)
+from lab.modules.stereo.steps import (DenseReconstruction, DisparityRange, FilteredDisparity, RectifiedPair,
+                                      aggregate_costs, cost_volume, estimate_disparity_range,
+                                      filter_disparity, left_right_check, reconstruct_points, rectify_pair,
+                                      refine_subpixel, winner_take_all)
 from lab.modules.stereo.winners import best_two_costs, costs_around, right_disparity
 
 #: State names the viewer's interactions (:mod:`lab.viewer.interactions.stereo`) read by name.
@@ -86,12 +95,13 @@ VIEWS = ("left_raw", "calibration", "left", "right", "K", "baseline", "cost_volu
 PIPELINE = Pipeline.build(
     name="stereo",
     title="Stereo disparity",
-    summary="Dense depth from two views: rectify the pair, compute a cost volume (SSD, NCC, census ...), "
+    summary="Dense depth from two views: rectify the pair, estimate the disparity range from matched "
+            "features, compute a cost volume (SSD, NCC, census ...), "
             "aggregate it with semi-global matching, pick disparities, check them left against right, refine "
             "them below a pixel, filter holes and peaks, and triangulate a coloured point cloud with its "
             "uncertainty.",
-    steps=[rectify_pair, cost_volume, aggregate_costs, winner_take_all, left_right_check, refine_subpixel,
-           filter_disparity, reconstruct_points],
+    steps=[rectify_pair, estimate_disparity_range, cost_volume, aggregate_costs, winner_take_all,
+           left_right_check, refine_subpixel, filter_disparity, reconstruct_points],
     datasets=[motorcycle, synthetic, folder],
     evaluations={"rectify_pair": evaluate_rectification, "winner_take_all": evaluate_winner_take_all,
                  "left_right_check": evaluate_left_right, "refine_subpixel": evaluate_subpixel,
@@ -100,16 +110,20 @@ PIPELINE = Pipeline.build(
 )
 
 __all__ = [
-    "BAD_THRESHOLDS", "COSTS", "HOLE", "MAX_VOLUME_ENTRIES", "MOTORCYCLE_BASELINE_M", "MOTORCYCLE_CENTRE_PX",
-    "MOTORCYCLE_DOFFS_PX", "MOTORCYCLE_FOCAL_PX", "NCC_FLAT_VARIANCE", "PIPELINE", "SGM_DIRECTIONS", "VIEWS",
-    "Cost", "DenseReconstruction", "FilteredDisparity", "RectifiedPair", "aggregate_costs", "best_two_costs",
-    "best_two_costs_reference", "box_mean", "box_mean_reference", "census_costs", "census_transform",
+    "BAD_THRESHOLDS", "COSTS", "HOLE", "MAX_VOLUME_ENTRIES", "MOTORCYCLE_BASELINE_M",
+    "MOTORCYCLE_CENTRE_PX", "MOTORCYCLE_DOFFS_PX", "MOTORCYCLE_FOCAL_PX", "NCC_FLAT_VARIANCE",
+    "PIPELINE", "SGM_DIRECTIONS", "VIEWS", "CensusRows", "Cost", "DenseReconstruction", "DisparityRange",
+    "FilteredDisparity", "RangeMatches", "RectifiedPair", "RowWinners", "aggregate_costs",
+    "best_two_costs", "best_two_costs_reference", "block_matching_rows", "box_mean",
+    "box_mean_reference", "census_costs", "census_rows", "census_transform",
     "census_transform_reference", "colorize_disparity", "cost_curves", "cost_volume", "costs_around",
-    "depth_from_disparity", "disparity_errors", "error_map", "evaluate_depth", "evaluate_disparity",
-    "evaluate_left_right", "evaluate_rectification", "evaluate_subpixel", "evaluate_winner_take_all",
-    "fill_holes", "filter_disparity", "folder", "hamming_costs", "hamming_costs_reference",
-    "left_right_check", "motorcycle", "quantize_costs", "rank_transform", "read_calibration",
-    "read_disparity", "reconstruct_points", "rectify_pair", "refine_subpixel", "remove_peaks",
-    "right_disparity", "right_disparity_reference", "row_misalignment", "semi_global_matching", "sgm_inputs",
-    "sgm_reference", "shifted_right", "synthetic", "volume_curve", "volume_range", "winner_take_all",
+    "depth_from_disparity", "disparity_errors", "error_map", "estimate_disparity_range",
+    "estimate_max_disparity", "evaluate_depth", "evaluate_disparity", "evaluate_left_right",
+    "evaluate_rectification", "evaluate_subpixel", "evaluate_winner_take_all", "fill_holes",
+    "filter_disparity", "folder", "hamming_costs", "hamming_costs_reference", "lean_memory_bytes",
+    "left_right_check", "match_range_features", "motorcycle", "quantize_costs", "rank_transform",
+    "read_calibration", "read_disparity", "reconstruct_points", "rectify_pair", "refine_subpixel",
+    "remove_peaks", "right_disparity", "right_disparity_reference", "row_misalignment",
+    "semi_global_matching", "semi_global_matching_rows", "sgm_inputs", "sgm_reference", "shifted_right",
+    "synthetic", "volume_curve", "volume_range", "winner_take_all",
 ]

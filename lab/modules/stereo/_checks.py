@@ -11,7 +11,8 @@ import numpy as np
 
 from lab.core import Image, InvalidControl, InvalidValue
 
-#: Largest cost volume (H * W * D entries) a step builds: 2**26 float32 entries are 256 MiB.
+#: Largest cost volume (H * W * D entries) a step builds and keeps whole: 2**26 float32 entries are 256 MiB.
+#: A larger census volume is aggregated by rows in bounded memory (:mod:`lab.modules.stereo.lean`).
 MAX_VOLUME_ENTRIES = 2**26
 
 
@@ -84,14 +85,10 @@ def integer_disparity(disparity: Any, name: str, shape: tuple[int, int], dispari
     return rounded.astype(np.int64)
 
 
-def check_entries(height: int, width: int, disparities: int) -> None:
-    entries = height * width * disparities
-    if entries > MAX_VOLUME_ENTRIES:
-        raise InvalidControl("max_disparity", f"the cost volume would hold {height} x {width} x "
-                                              f"{disparities} = {entries:,} costs "
-                                              f"({entries * 4 / 2**20:.0f} MiB), more than the "
-                                              f"{MAX_VOLUME_ENTRIES:,} allowed; lower max_disparity or use "
-                                              "smaller images (the datasets' downsample option)")
+def volume_fits(height: int, width: int, disparities: int) -> bool:
+    """Whether a cost volume of ``height x width x disparities`` is kept whole (:data:`MAX_VOLUME_ENTRIES`,
+    read at each call so that a test or a server may change it)."""
+    return height * width * disparities <= MAX_VOLUME_ENTRIES
 
 
 def check_baseline(baseline: Any) -> float:

@@ -176,9 +176,10 @@ def _census_row_sums_kernel(codes_left, codes_right, source, radius, reversed_ro
 
 
 @kernel
-def _census_costs_kernel(codes_left, codes_right, radius, factor, out, y0, y1):
+def _census_costs_kernel(codes_left, codes_right, radius, factor, out, y0, y1, row0):
     """Rows ``y0:y1`` of the census cost volume in one pass: Hamming distances summed over the window
-    (borders replicated) times ``factor``, written to ``out`` (float32).
+    (borders replicated) times ``factor``, written to ``out[y - row0]`` (float32; ``row0 = 0`` for the
+    whole volume, ``row0 = y0`` for a band of rows of its own).
 
     Each row's Hamming distances are summed along the row as they are counted; a ring holds the
     row sums of the last ``2 radius + 2`` source rows and an integer accumulator slides down the
@@ -204,7 +205,7 @@ def _census_costs_kernel(codes_left, codes_right, radius, factor, out, y0, y1):
             for d in range(D):
                 acc[x, d] += sums[x, d]
     for y in range(y0, y1):
-        target = out[y]
+        target = out[y - row0]
         for x in range(W):
             for d in range(D):
                 target[x, d] = np.float32(acc[x, d] * factor)
@@ -309,36 +310,50 @@ def _sgm_row_horizontal_kernel(costs_row, buffer, total, forward, P1, P2):
 
 
 @kernel
+def _sgm_row_paths_kernel(source, quantum, P1, P2, forward, diagonals, i, paths, path_mins, buffer, row,
+                          total):
+    """Row ``i`` of a sweep (top-down when ``forward``, else bottom-up): its costs ``source`` ``(W, D)``
+    rounded to integers, ``floor(source * quantum + 0.5)``, then ``total`` ``(W, D)`` int32 = the sum of
+    the ``L`` of the path along the row and of the 1 or 3 paths from the row before.
+
+    ``paths`` ``(2, 3, W, D + 2)`` int16 and ``path_mins`` ``(2, 3, W)`` hold the path costs of the row
+    before (slot ``1 - i & 1``) and of this one (slot ``i & 1``); ``buffer`` ``(2, D + 2)`` and ``row``
+    ``(W, D)`` int16 are scratch. Every path starts at row 0 of the sweep.
+    """
+    W, D = source.shape
+    half = np.float32(0.5)
+    now = i & 1
+    for x in range(W):
+        for d in range(D):
+            row[x, d] = np.int16(source[x, d] * quantum + half)
+    _sgm_row_horizontal_kernel(row, buffer, total, forward, P1, P2)
+    for k in range(3):
+        if k != 1 and not diagonals:
+            continue
+        _sgm_row_from_previous_kernel(row, paths[1 - now, k], path_mins[1 - now, k], paths[now, k],
+                                      path_mins[now, k], total, 1 - k, i == 0, P1, P2)
+
+
+@kernel
 def _sgm_sweep_kernel(volume, quantum, P1, P2, forward, diagonals, out, scale, add):
     """One sweep over the image (top-down when ``forward``, else bottom-up) that runs 2 or 4 paths at once.
 
     Forward: left-to-right, top-down, and the two diagonals from the row above; backward: the
-    four opposite directions. Each row's costs are first rounded to integers,
-    ``floor(volume * quantum + 0.5)``; then ``out[y] (+)= scale * (sum of the paths' L)``
-    (float32, exact for the integer sums below 2**24 that :func:`semi_global_matching` guarantees).
+    four opposite directions (:func:`_sgm_row_paths_kernel`, row by row); then
+    ``out[y] (+)= scale * (sum of the paths' L)`` (float32, exact for the integer sums below 2**24 that
+    :func:`semi_global_matching` guarantees).
     """
     H, W, D = volume.shape
     big = np.int16(SGM_LARGEST)
-    previous = np.full((3, W, D + 2), big, np.int16)
-    current = np.full((3, W, D + 2), big, np.int16)
-    previous_min = np.zeros((3, W), np.int16)
-    current_min = np.zeros((3, W), np.int16)
+    paths = np.full((2, 3, W, D + 2), big, np.int16)
+    path_mins = np.zeros((2, 3, W), np.int16)
     buffer = np.full((2, D + 2), big, np.int16)
     total = np.empty((W, D), np.int32)
     row = np.empty((W, D), np.int16)
-    half = np.float32(0.5)
     for i in range(H):
         y = i if forward else H - 1 - i
-        source = volume[y]
-        for x in range(W):
-            for d in range(D):
-                row[x, d] = np.int16(source[x, d] * quantum + half)
-        _sgm_row_horizontal_kernel(row, buffer, total, forward, P1, P2)
-        for k in range(3):
-            if k != 1 and not diagonals:
-                continue
-            _sgm_row_from_previous_kernel(row, previous[k], previous_min[k], current[k], current_min[k],
-                                          total, 1 - k, i == 0, P1, P2)
+        _sgm_row_paths_kernel(volume[y], quantum, P1, P2, forward, diagonals, i, paths, path_mins, buffer,
+                              row, total)
         target = out[y]
         if add:
             for x in range(W):
@@ -348,8 +363,6 @@ def _sgm_sweep_kernel(volume, quantum, P1, P2, forward, diagonals, out, scale, a
             for x in range(W):
                 for d in range(D):
                     target[x, d] = np.float32(total[x, d]) * scale
-        previous, current = current, previous
-        previous_min, current_min = current_min, previous_min
     return out
 
 
@@ -379,6 +392,88 @@ def _add_kernel(target, other, y0, y1):
         for x in range(W):
             for d in range(D):
                 target[y, x, d] += other[y, x, d]
+
+# ----------------------------------------------------------------------------------------------------
+# Semi-global matching by rows in bounded memory (.lean): the sweeps of _sgm_sweep_kernel one band of
+# rows at a time, the forward paths' sums kept in 16 bits, each row's winners taken as the backward
+# sweep finishes it
+# ----------------------------------------------------------------------------------------------------
+@kernel
+def _row_winners_kernel(values, y, winner, right, around, best, second):
+    """What the steps after aggregation read of row ``y`` of a volume, from its costs ``values`` ``(W, D)``
+    float32: the first lowest cost's disparity (``np.argmin``), the right image's winner (as
+    :func:`_right_disparity_kernel`), the three costs around the winner clipped to ``[1, D - 2]`` (as
+    :func:`_costs_around_kernel`, float64) and the best two costs (as :func:`_best_two_costs_kernel`)."""
+    W, D = values.shape
+    for x in range(W):
+        low = np.float32(np.inf)
+        chosen = 0
+        for d in range(D):
+            value = values[x, d]
+            if value < low:
+                low = value
+                chosen = d
+        other = np.float32(np.inf)
+        for d in range(D):
+            value = values[x, d]
+            if (d < chosen - 1 or d > chosen + 1) and value < other:
+                other = value
+        winner[y, x] = chosen
+        best[y, x] = low
+        second[y, x] = other
+        if D >= 3:
+            centre = min(max(chosen, 1), D - 2)
+            for k in range(3):
+                around[k, y, x] = values[x, centre - 1 + k]
+    for xr in range(W):
+        low = np.float32(np.inf)
+        chosen = 0
+        for d in range(min(D, W - xr)):
+            value = values[xr + d, d]
+            if value < low:
+                low = value
+                chosen = d
+        right[y, xr] = chosen
+
+
+@kernel
+def _band_winners_kernel(band, y0, winner, right, around, best, second):
+    """:func:`_row_winners_kernel` on every row of ``band`` ``(n, W, D)``, rows ``y0 .. y0 + n``."""
+    for j in range(band.shape[0]):
+        _row_winners_kernel(band[j], y0 + j, winner, right, around, best, second)
+
+
+@kernel
+def _sgm_band_kernel(band, y0, H, quantum, P1, P2, forward, diagonals, paths, path_mins, buffer, row, total,
+                     stored, scale, winner, right, around, best, second):
+    """The rows of ``band`` ``(n, W, D)`` float32 (the costs of rows ``y0 .. y0 + n``) in sweep order
+    (top-down when ``forward``, else bottom-up), with the path updates of :func:`_sgm_sweep_kernel`
+    (:func:`_sgm_row_paths_kernel`; its ``paths``, ``path_mins``, ``buffer``, ``row`` and ``total`` are
+    passed in, so that a sweep goes on across calls).
+
+    Forward: the row's sum of its 2 or 4 paths goes to ``stored[y]`` (uint16: each path cost is below
+    16383). Backward: ``S = stored[y] +`` the other paths, and ``float32(S) * scale`` (exact, as in the
+    full volume: ``S < 2**24``, ``scale`` a power of two) is reduced to the row's winners
+    (:func:`_row_winners_kernel`); the band is overwritten.
+    """
+    n, W, D = band.shape
+    for j in range(n):
+        k_row = j if forward else n - 1 - j
+        y = y0 + k_row
+        source = band[k_row]
+        _sgm_row_paths_kernel(source, quantum, P1, P2, forward, diagonals, y if forward else H - 1 - y, paths,
+                              path_mins, buffer, row, total)
+        kept = stored[y]
+        if forward:
+            for x in range(W):
+                for d in range(D):
+                    kept[x, d] = np.uint16(total[x, d])
+        else:
+            for x in range(W):
+                for d in range(D):
+                    source[x, d] = np.float32(total[x, d] + np.int32(kept[x, d])) * scale
+            _row_winners_kernel(source, y, winner, right, around, best, second)
+
 
 # ----------------------------------------------------------------------------------------------------
 # Winners: the right image's, the costs around each, the best two (in .winners)
@@ -446,8 +541,10 @@ def _best_two_costs_kernel(volume, best, second, y0, y1):
 # ----------------------------------------------------------------------------------------------------
 def _warm_up() -> None:
     """The steps from the cost volume to the filtered disparity on a 64 x 48 synthetic pair, once per cost,
-    and the Hamming costs of census codes (the lesson's helper; the step sums them by rows)."""
-    from lab.modules.stereo import COSTS, PIPELINE, census_transform, hamming_costs
+    the Hamming costs of census codes (the lesson's helper; the step sums them by rows), and SGM and block
+    matching by rows (the path of volumes too large to keep) on a 16 x 12 pair."""
+    from lab.modules.stereo import (COSTS, PIPELINE, block_matching_rows, census_rows, census_transform,
+                                    hamming_costs, semi_global_matching_rows)
 
     codes = census_transform(np.zeros((8, 12), np.float32), 5)
     hamming_costs(codes, codes, 4)
@@ -455,6 +552,9 @@ def _warm_up() -> None:
         params: dict[str, dict[str, object]] = {"cost_volume": {"cost": cost, "max_disparity": 8},
                                                 "aggregate_costs": {"paths": 4 if index % 2 else 8}}
         warm_up_steps(PIPELINE, "synthetic", {"width": 64, "height": 48}, "filter_disparity", params)
+    rows = census_rows(np.zeros((12, 16), np.float32), np.ones((12, 16), np.float32), 4, 5)  # volumes by rows
+    semi_global_matching_rows(rows, P1=0.05, P2=1.0, paths=8)
+    block_matching_rows(rows)
 
 
 register_warm_up("stereo", ("cost_volume", "aggregate_costs", "left_right_check", "refine_subpixel",

@@ -122,7 +122,7 @@ def census_costs(gray_left: np.ndarray, gray_right: np.ndarray, disparities: int
     H, W, _ = codes_left.shape
     out = np.empty((H, W, int(disparities)), np.float32)
     factor = 1.0 / (window * window * (window * window - 1))
-    in_parallel(_census_costs_kernel, [(codes_left, codes_right, window // 2, factor, out, y0, y1)
+    in_parallel(_census_costs_kernel, [(codes_left, codes_right, window // 2, factor, out, y0, y1, 0)
                                           for y0, y1 in bands(H)])
     return out
 

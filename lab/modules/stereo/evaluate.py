@@ -15,6 +15,7 @@ from lab.geometry.camera import project
 from lab.geometry.rectification import StereoCalibration, rectify_pixels, stereo_rectify
 from lab.modules.stereo._checks import check_max_disparity, check_pair, check_window
 from lab.modules.stereo.costs import COSTS, Cost
+from lab.modules.stereo.lean import RowWinners
 from lab.modules.stereo.steps import cost_volume
 
 #: Error thresholds (pixels) of the bad-pixel rates.
@@ -157,7 +158,8 @@ def evaluate_depth(state: dict[str, Any], truth: dict[str, Any]) -> dict[str, fl
 # Inspection: the costs of one pixel
 # ----------------------------------------------------------------------------------------------------
 def cost_curves(left: Image, right: Image, x: int, y: int, *, costs: tuple[str, ...] = COSTS,
-                window: int = 5, max_disparity: int = 64, aggregated_cost: np.ndarray | None = None) -> Curve:
+                window: int = 5, max_disparity: int = 64,
+                aggregated_cost: np.ndarray | RowWinners | None = None) -> Curve:
     """The cost of left pixel ``(x, y)`` at every disparity, one series per cost (what the viewer plots on a
     click).
 
@@ -165,7 +167,8 @@ def cost_curves(left: Image, right: Image, x: int, y: int, *, costs: tuple[str, 
     ``x - max_disparity - r .. x + r``, ``r`` the reach of the window and of the census/rank
     transform), so a click costs milliseconds; the values equal those of the full volume.
     ``aggregated_cost`` (the state's volume, optional) adds its curve at the pixel, labelled
-    "aggregated"; rank and census are left out when ``window`` is 1 (they need neighbours).
+    "aggregated" (not for a volume aggregated by rows, which keeps no curves); rank and census are left
+    out when ``window`` is 1 (they need neighbours).
     Returns a :class:`Curve` over ``d = 0 .. max_disparity``.
     """
     left, right = check_pair(left, right)
@@ -188,11 +191,14 @@ def cost_curves(left: Image, right: Image, x: int, y: int, *, costs: tuple[str, 
             continue  # these compare a pixel with its neighbours: a 1 x 1 window has none
         usable = min(max_disparity, crop_l.width - 1)
         volume = cost_volume(crop_l, crop_r, cost=cast(Cost, name), window=window, max_disparity=usable)
+        if not isinstance(volume, np.ndarray):  # a crop's volume is small enough to be kept whole
+            raise InvalidValue("max_disparity", f"the volume of a {crop_l.width} x {crop_l.height} crop was "
+                                                "not kept whole")
         curve = np.full(max_disparity + 1, volume[y - y0, x - x0, -1], dtype=np.float64)
         curve[:usable + 1] = volume[y - y0, x - x0]
         series.append(curve)
         labels.append(name)
-    if aggregated_cost is not None:
+    if aggregated_cost is not None and not isinstance(aggregated_cost, RowWinners):  # rows keep no curves
         volume = np.asarray(aggregated_cost)
         if volume.ndim != 3 or volume.shape[:2] != (left.height, left.width):
             raise InvalidValue("aggregated_cost", f"expected ({left.height}, {left.width}, D), got "

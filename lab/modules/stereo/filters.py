@@ -9,6 +9,7 @@ from __future__ import annotations
 import numpy as np
 
 from lab.core import Image, InvalidValue
+from lab.modules.stereo.lean import RowWinners
 from lab.modules.stereo.winners import best_two_costs
 
 #: Disparities of the final map that mark a hole.
@@ -24,10 +25,11 @@ def median_filter(disparity: np.ndarray, size: int) -> np.ndarray:
     return cv2.medianBlur(disparity.astype(np.float32), int(size)).astype(np.float64)
 
 
-def unique_winners(volume: np.ndarray, uniqueness: float) -> np.ndarray:
+def unique_winners(volume: np.ndarray | RowWinners, uniqueness: float) -> np.ndarray:
     """``(H, W)`` bool: the winner's cost is below ``1 - uniqueness`` times the best cost two or more
-    disparities away (:func:`best_two_costs`; OpenCV's ``uniquenessRatio``)."""
-    best, second = best_two_costs(volume)
+    disparities away (:func:`best_two_costs`, or those a volume aggregated by rows kept; OpenCV's
+    ``uniquenessRatio``)."""
+    best, second = (volume.best, volume.second) if isinstance(volume, RowWinners) else best_two_costs(volume)
     return best < (1.0 - uniqueness) * second
 
 

@@ -49,14 +49,20 @@ def volume_range(volume: np.ndarray) -> tuple[float, float]:
     return float(lows.min()), float(highs.max())
 
 
-def sgm_inputs(volume: np.ndarray, P1: float, P2: float, paths: int) -> tuple[np.ndarray, float, int, int]:
-    """Checked non-negative costs, the quantization scale and the integer penalties."""
-    volume = check_volume(volume, "cost_volume", finite=False)
+def check_penalties(P1: float, P2: float, paths: int) -> tuple[float, float]:
+    """``(P1, P2)`` as floats, refusing ``paths`` other than 4 or 8 and penalties not ``0 <= P1 <= P2``."""
     if paths not in (4, 8):
         raise InvalidControl("paths", f"must be 4 or 8, got {paths!r}")
     P1, P2 = float(P1), float(P2)
     if P1 < 0 or P2 < P1:
         raise InvalidControl("P2", f"the penalties must satisfy 0 <= P1 <= P2, got P1 = {P1}, P2 = {P2}")
+    return P1, P2
+
+
+def sgm_inputs(volume: np.ndarray, P1: float, P2: float, paths: int) -> tuple[np.ndarray, float, int, int]:
+    """Checked non-negative costs, the quantization scale and the integer penalties."""
+    volume = check_volume(volume, "cost_volume", finite=False)
+    P1, P2 = check_penalties(P1, P2, paths)
     low, high = volume_range(volume) if volume.size else (0.0, 0.0)
     if not (np.isfinite(low) and np.isfinite(high)):
         raise InvalidValue("cost_volume", "contains NaN or infinite costs")

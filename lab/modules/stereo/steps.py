@@ -12,17 +12,20 @@ from typing import Annotated, Literal
 
 import numpy as np
 
-from lab.core import (Cameras, Image, InvalidControl, InvalidValue, PointCloud, Range, Warnings, metric,
-                      step_result)
+from lab.core import (Cameras, Image, InvalidControl, InvalidValue, PointCloud, Points2D, Range, Warnings,
+                      metric, step_result)
 from lab.geometry.camera import as_intrinsics
 from lab.geometry.rectification import StereoCalibration, stereo_rectify
 from lab.geometry.rotations import rotation_angle_deg
-from lab.modules.stereo._checks import (check_entries, check_map, check_max_disparity, check_pair,
-                                        check_volume, check_window, integer_disparity)
+from lab.modules.stereo._checks import (check_map, check_max_disparity, check_pair, check_volume,
+                                        check_window, integer_disparity, volume_fits)
 from lab.modules.stereo.costs import COSTS, Cost, census_costs, ncc_costs, nssd_costs, window_costs
 from lab.modules.stereo.depth import depth_from_disparity, point_cloud, rectified_cameras
+from lab.modules.stereo.disparity_range import estimate_max_disparity, match_range_features
 from lab.modules.stereo.filters import (HOLE, colorize_disparity, fill_holes, median_filter, remove_peaks,
                                         unique_winners)
+from lab.modules.stereo.lean import (CensusRows, RowWinners, block_matching_rows, census_rows, check_by_rows,
+                                     semi_global_matching_rows)
 from lab.modules.stereo.rectify import check_rows, remap_pair, row_misalignment
 from lab.modules.stereo.sgm import semi_global_matching
 from lab.modules.stereo.winners import check_winners, costs_around, right_disparity
@@ -104,11 +107,71 @@ def rectify_pair(left_raw: Image, right_raw: Image, calibration: StereoCalibrati
 
 
 # ----------------------------------------------------------------------------------------------------
-# 2. Matching costs
+# 2. The disparity range, from matched features
+# ----------------------------------------------------------------------------------------------------
+@step_result
+class DisparityRange:
+    """Result of :func:`estimate_disparity_range`."""
+
+    disparity_features: Points2D
+    disparity_features_right: Points2D
+    warnings: Warnings
+    auto_max_disparity: int = metric("largest disparity that max_disparity = 0 (auto) searches (-1: no "
+                                     "estimate)", unit="px")
+    range_matches: int = metric("SIFT features matched along the rows")
+    feature_disparity_low: float = metric("1st percentile of the matched features' disparities", unit="px")
+    feature_disparity_high: float = metric("99th percentile of the matched features' disparities", unit="px")
+
+
+def estimate_disparity_range(left: Image, right: Image) -> DisparityRange:
+    """How far apart the two views of a point are, from sparse matched features: the range to search.
+
+    SIFT keypoints of both images are matched by descriptor with Lowe's ratio test and kept when
+    they lie on one row (the rectified pair's constraint) at a disparity ``x_left - x_right >= 0``;
+    the 99th percentile of their disparities plus a margin (8 px and 5 %), rounded up to a multiple
+    of 16, is ``auto_max_disparity``, what :func:`cost_volume` searches with ``max_disparity = 0``
+    (auto; :mod:`.disparity_range`). The matched features are drawn on both images, coloured by
+    their disparity (turbo, as the disparity map). With fewer than 10 matches there is no estimate
+    (-1, and a warning saying to set ``max_disparity``).
+
+    Reference: D. Lowe, IJCV 60 (2004), section 7.1 (the ratio test); Hartley & Zisserman (2nd ed.),
+    section 11.12 (corresponding points of a rectified pair share their row).
+    """
+    left, right = check_pair(left, right)
+    matches = match_range_features(left, right)
+    top, note = estimate_max_disparity(matches, left.width)
+    d = matches.disparity
+    scale = float(top) if top > 0 else float(d.max()) if len(d) else 1.0
+    colors = colorize_disparity(d[None, :], max_disparity=scale).pixels[0].astype(np.float64) if len(d) \
+        else np.zeros((0, 3))
+    ids = np.arange(len(d))
+    return DisparityRange(
+        disparity_features=Points2D(matches.left, ids=ids, colors=colors, image="left"),
+        disparity_features_right=Points2D(matches.right, ids=ids, colors=colors, image="right"),
+        warnings=(note,) if top < 0 else (), auto_max_disparity=top, range_matches=len(d),
+        feature_disparity_low=float(np.percentile(d, 1.0)) if len(d) else -1.0,
+        feature_disparity_high=float(np.percentile(d, 99.0)) if len(d) else -1.0)
+
+
+def resolve_max_disparity(left: Image, right: Image, max_disparity: int) -> int:
+    """``max_disparity``, or with 0 (auto) the range :func:`estimate_disparity_range` estimates (an error
+    naming ``max_disparity`` when the features give none)."""
+    if int(max_disparity) != 0:
+        return check_max_disparity(max_disparity, left.width)
+    top, note = estimate_max_disparity(match_range_features(left, right), left.width)
+    if top < 0:
+        raise InvalidControl("max_disparity", f"0 (auto) estimates the range from matched features, "
+                                              f"but {note}")
+    return check_max_disparity(top, left.width)
+
+
+# ----------------------------------------------------------------------------------------------------
+# 3. Matching costs
 # ----------------------------------------------------------------------------------------------------
 def cost_volume(left: Image, right: Image, *, cost: Cost = "census",
                 window: Annotated[int, Range(1, 31)] = 5,
-                max_disparity: Annotated[int, Range(1, 1024)] = 64) -> Annotated[np.ndarray, "cost_volume"]:
+                max_disparity: Annotated[int, Range(0, 1024)] = 64,
+                ) -> Annotated[np.ndarray | CensusRows, "cost_volume"]:
     """The matching cost of every left pixel at every disparity, aggregated over a square window.
 
     With ``a`` the left window around ``(x, y)`` and ``b`` the right window around ``(x - d, y)``
@@ -140,9 +203,17 @@ def cost_volume(left: Image, right: Image, *, cost: Cost = "census",
         cost: the matching cost.
         window: side of the square window in pixels (odd; at least 3 for rank and census).
         max_disparity: largest disparity searched (pixels); the volume holds ``max_disparity + 1``.
+            0: estimated from matched features (:func:`estimate_disparity_range`'s auto_max_disparity).
 
     Returns ``(H, W, max_disparity + 1)`` float32, ``volume[y, x, d]`` the cost of matching left
     pixel ``(x, y)`` with right pixel ``(x - d, y)`` (LESSON TASK).
+
+    Full resolution: a volume of more than :data:`~lab.modules.stereo.MAX_VOLUME_ENTRIES` costs is not
+    built. Census costs are then returned as a :class:`~lab.modules.stereo.lean.CensusRows` (the census
+    strings, which compute any band of rows of the same volume on demand), and :func:`aggregate_costs`
+    aggregates them by rows in bounded memory (:mod:`.lean`; at most
+    :data:`lab.core.budgets.MAX_STEREO_BYTES`, else refused naming the memory needed and the
+    dataset's downsample option); other costs are refused there.
 
     Reference: Scharstein and Szeliski (2002), sections 3.1-3.2; Zabih and Woodfill (1994).
     """
@@ -150,10 +221,12 @@ def cost_volume(left: Image, right: Image, *, cost: Cost = "census",
     if cost not in COSTS:
         raise InvalidControl("cost", f"must be one of {list(COSTS)}, got {cost!r}")
     window = check_window(window, cost)
-    max_disparity = check_max_disparity(max_disparity, left.width)
+    max_disparity = resolve_max_disparity(left, right, max_disparity)
     disparities = max_disparity + 1
-    check_entries(left.height, left.width, disparities)
     a, b = left.gray(), right.gray()
+    if not volume_fits(left.height, left.width, disparities):
+        check_by_rows(cost, left.height, left.width, disparities, window)
+        return census_rows(a, b, disparities, window)
     if cost == "census":
         return census_costs(a, b, disparities, window)
     if cost == "ncc":
@@ -166,10 +239,10 @@ def cost_volume(left: Image, right: Image, *, cost: Cost = "census",
 # ----------------------------------------------------------------------------------------------------
 # 3. Aggregation
 # ----------------------------------------------------------------------------------------------------
-def aggregate_costs(cost_volume: np.ndarray, *, method: Literal["sgm", "none"] = "sgm",
+def aggregate_costs(cost_volume: np.ndarray | CensusRows, *, method: Literal["sgm", "none"] = "sgm",
                     P1: Annotated[float, Range(0.0, 10.0)] = 0.05,
                     P2: Annotated[float, Range(0.0, 100.0)] = 1.0,
-                    paths: Literal[4, 8] = 8) -> Annotated[np.ndarray, "aggregated_cost"]:
+                    paths: Literal[4, 8] = 8) -> Annotated[np.ndarray | RowWinners, "aggregated_cost"]:
     """Semi-global matching: add to every cost the cheapest way to reach it along 4 or 8 straight paths.
 
     Along each direction ``r`` (Hirschmüller 2008, equation 13)::
@@ -190,10 +263,17 @@ def aggregate_costs(cost_volume: np.ndarray, *, method: Literal["sgm", "none"] =
         paths: 4 (horizontal and vertical) or 8 (and the diagonals).
 
     Returns ``(H, W, D)`` float32 aggregated costs. Corresponds to the aggregation inside
-    ``cv2.StereoSGBM`` (which adds Birchfield-Tomasi costs and its own post-processing).
+    ``cv2.StereoSGBM`` (which adds Birchfield-Tomasi costs and its own post-processing). A volume
+    too large to keep (a :class:`~lab.modules.stereo.lean.CensusRows`) is aggregated by rows in bounded
+    memory and returned as its :class:`~lab.modules.stereo.lean.RowWinners`, what the next steps read
+    of it, equal to what they read of the full volume (:mod:`.lean`).
 
-    Reference: H. Hirschmüller, TPAMI 30(2), 2008, section 3.3.
+    Reference: H. Hirschmüller, TPAMI 30(2), 2008, sections 3.3 and 4.1.
     """
+    if isinstance(cost_volume, CensusRows):
+        if method == "none":
+            return block_matching_rows(cost_volume)
+        return semi_global_matching_rows(cost_volume, P1=P1, P2=P2, paths=int(paths))
     if method == "none":
         return check_volume(cost_volume, "cost_volume")
     return semi_global_matching(cost_volume, P1=P1, P2=P2, paths=int(paths))
@@ -206,7 +286,10 @@ def winner_take_all(aggregated_cost: np.ndarray) -> Annotated[np.ndarray, "dispa
     """Each pixel's disparity is the one with the lowest cost: ``d(p) = argmin_d S(p, d)`` (first on ties).
 
     Returns ``(H, W)`` int64 (LESSON TASK). Reference: Scharstein and Szeliski (2002), section 3.3.
+    (A volume aggregated by rows, :class:`~lab.modules.stereo.lean.RowWinners`, carries its winners.)
     """
+    if isinstance(aggregated_cost, RowWinners):
+        return aggregated_cost.winner.copy()
     volume = check_volume(aggregated_cost, "aggregated_cost", finite=False)
     winner = np.argmin(volume, axis=2)
     check_winners(volume, winner)
@@ -231,17 +314,19 @@ def left_right_check(aggregated_cost: np.ndarray, disparity_wta: np.ndarray, *,
     Reference: Hirschmüller (2008), section 3.4 (equation 15); P. Fua, "A parallel stereo algorithm
     that produces dense depth maps and preserves image features", MVA 6 (1993).
     """
-    volume = check_volume(aggregated_cost, "aggregated_cost", finite=False)
-    H, W, D = volume.shape
+    if isinstance(aggregated_cost, RowWinners):
+        (H, W, D), right = aggregated_cost.shape, aggregated_cost.right
+    else:
+        volume = check_volume(aggregated_cost, "aggregated_cost", finite=False)
+        (H, W, D), right = volume.shape, right_disparity(volume)
     left = integer_disparity(disparity_wta, "disparity_wta", (H, W), D)
-    right = right_disparity(volume)
     columns = np.arange(W)[None, :] - left
     inside = columns >= 0
     back = right[np.arange(H)[:, None], np.clip(columns, 0, W - 1)]
     return inside & (np.abs(left - back) <= int(max_difference))
 
 
-def refine_subpixel(aggregated_cost: np.ndarray, disparity_wta: np.ndarray, *,
+def refine_subpixel(aggregated_cost: np.ndarray | RowWinners, disparity_wta: np.ndarray, *,
                     method: Literal["parabola", "none"] = "parabola",
                     ) -> Annotated[np.ndarray, "disparity_subpixel"]:
     """Sub-pixel disparity from a parabola through the costs at ``d - 1``, ``d``, ``d + 1``.
@@ -256,14 +341,15 @@ def refine_subpixel(aggregated_cost: np.ndarray, disparity_wta: np.ndarray, *,
 
     Reference: Scharstein and Szeliski (2002), section 3.4; Hirschmüller (2008), section 3.3.
     """
-    volume = check_volume(aggregated_cost, "aggregated_cost", finite=False)
+    lean = isinstance(aggregated_cost, RowWinners)
+    volume = aggregated_cost if lean else check_volume(aggregated_cost, "aggregated_cost", finite=False)
     H, W, D = volume.shape
     d = integer_disparity(disparity_wta, "disparity_wta", (H, W), D)
     out = d.astype(np.float64)
     if method == "none" or D < 3:
         return out
     inner = (d >= 1) & (d <= D - 2)
-    c0, c1, c2 = costs_around(volume, np.clip(d, 1, D - 2))
+    c0, c1, c2 = around_winners(volume, d)
     curvature = c0 - 2.0 * c1 + c2
     usable = inner & (curvature > 0)
     offset = np.where(usable, (c0 - c2) / (2.0 * np.where(usable, curvature, 1.0)), 0.0)
@@ -275,6 +361,19 @@ def refine_subpixel(aggregated_cost: np.ndarray, disparity_wta: np.ndarray, *,
 # ----------------------------------------------------------------------------------------------------
 # 5. Filtering
 # ----------------------------------------------------------------------------------------------------
+def around_winners(volume: np.ndarray | RowWinners, winner: np.ndarray) -> np.ndarray:
+    """``(3, H, W)``: the costs at ``d - 1, d, d + 1`` for ``d`` the ``winner`` clipped to ``[1, D - 2]``; a
+    volume aggregated by rows keeps them for its own winners only."""
+    D = volume.shape[2]
+    if not isinstance(volume, RowWinners):
+        return costs_around(volume, np.clip(winner, 1, D - 2))
+    if not np.array_equal(winner, volume.winner):
+        raise InvalidValue("disparity_wta", "a cost volume aggregated by rows (too large to keep) holds the "
+                                            "costs around its own winners only: refine the disparities that "
+                                            "winner_take_all picked from it")
+    return volume.around
+
+
 @step_result
 class FilteredDisparity:
     """Result of :func:`filter_disparity`."""
@@ -288,7 +387,8 @@ class FilteredDisparity:
     filled: float = metric("fraction of pixels filled by hole filling")
 
 
-def filter_disparity(disparity_subpixel: np.ndarray, consistent: np.ndarray, aggregated_cost: np.ndarray, *,
+def filter_disparity(disparity_subpixel: np.ndarray, consistent: np.ndarray,
+                     aggregated_cost: np.ndarray | RowWinners, *,
                      median: Literal[1, 3, 5] = 3, uniqueness: Annotated[float, Range(0.0, 0.9)] = 0.05,
                      speckle_size: Annotated[int, Range(0, 100000)] = 100,
                      speckle_range: Annotated[float, Range(0.0, 16.0)] = 2.0,
@@ -311,7 +411,8 @@ def filter_disparity(disparity_subpixel: np.ndarray, consistent: np.ndarray, agg
 
     Returns ``disparity`` ``(H, W)`` float64 with -1 in holes and ``disparity_image``.
     """
-    volume = check_volume(aggregated_cost, "aggregated_cost", finite=False)
+    lean = isinstance(aggregated_cost, RowWinners)
+    volume = aggregated_cost if lean else check_volume(aggregated_cost, "aggregated_cost", finite=False)
     H, W, D = volume.shape
     refined = check_map(disparity_subpixel, "disparity_subpixel", (H, W))
     mask = check_map(consistent, "consistent", (H, W), kind="b")
