@@ -145,18 +145,15 @@ def _rasterize_backward_kernel(tile_start: int, tile_stop: int, ranges: np.ndarr
 
 
 def _warm_up() -> None:
-    """Compile both kernels for float32 (training) on a one-tile image with one Gaussian."""
-    from lab.modules.splatting.rasterize import rasterize_image
-
-    import torch
-
-    means2d = torch.tensor([[4.0, 4.0]], requires_grad=True)
-    conics = torch.tensor([[0.2, 0.0, 0.2]], requires_grad=True)
-    colors = torch.tensor([[0.5, 0.5, 0.5]], requires_grad=True)
-    opacities = torch.tensor([0.5], requires_grad=True)
-    image = rasterize_image(means2d, conics, colors, opacities, torch.tensor([1.0]),
-                            torch.tensor([[0, 0, 1, 1]]), torch.ones(3), width=8, height=8, tile_size=16)
-    image.sum().backward()
+    """Compile both kernels for float32 (training's dtype) on a one-tile image with one Gaussian."""
+    f4 = np.float32
+    ranges, ids = np.array([[0, 1]], np.int64), np.zeros(1, np.int64)
+    packed = pack_pairs(ids, np.array([[4.0, 4.0]], f4), np.array([[0.2, 0.0, 0.2]], f4), np.array([0.5], f4))
+    colors, background = np.full((1, 3), 0.5, f4), np.ones(3, f4)
+    image, final_t, n_contrib = np.zeros((8, 8, 3), f4), np.ones((8, 8), f4), np.zeros((8, 8), np.int64)
+    _rasterize_forward_kernel(0, 1, ranges, ids, packed, colors, background, 16, 1, image, final_t, n_contrib)
+    _rasterize_backward_kernel(0, 1, ranges, ids, packed, colors, background, 16, 1, final_t, n_contrib,
+                               np.ones((8, 8, 3), f4), np.zeros((1, 9), f4))
 
 
 register_warm_up("splatting", ["train_splats", "render_held_out", "render_view"],
