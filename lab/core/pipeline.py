@@ -597,7 +597,7 @@ class Session:
         return record
 
     def _drive(self, step: str, generator, on_progress: ProgressCallback | None) -> Any:
-        """Iterate a generator step, forwarding progress; closing it on cancel cancels the work."""
+        """Iterate a generator step, forwarding progress; on cancel, :meth:`_stop` it."""
         try:
             while True:
                 try:
@@ -605,14 +605,24 @@ class Session:
                 except StopIteration as stop:
                     return stop.value
                 if self.cancel_event.is_set():
-                    generator.close()
-                    raise Cancelled(step, "cancelled by the user")
+                    return self._stop(step, generator)
                 if isinstance(progress, Progress):
                     for listener in [on_progress, *self.listeners]:
                         if listener is not None:
                             listener(step, progress)
         finally:
             generator.close()
+
+    @staticmethod
+    def _stop(step: str, generator) -> Any:
+        """Cancel a generator step: :class:`Cancelled` is thrown in where it yielded. A step that catches it
+        and returns (a training loop whose model so far is the result) has that result written as usual,
+        its warnings saying it stopped early; one that does not is cancelled and writes nothing."""
+        try:
+            generator.throw(Cancelled(step, "cancelled by the user"))
+        except StopIteration as stop:
+            return stop.value
+        raise Cancelled(step, "cancelled by the user (the step went on after it was asked to stop)")
 
     def run_plan(self, plan: Plan, params: StepParams | None = None, *,
                  overrides: Mapping[str, Callable[..., Any]] | None = None,
