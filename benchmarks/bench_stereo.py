@@ -20,12 +20,33 @@ errors, bad-2 over predicted pixels only, coverage, end-point error. Times are m
 ``--repeat`` runs after a warm-up (which compiles the Numba kernels), from images in memory to
 the final disparity map; our kernels and OpenCV both use every CPU of the process.
 
-    python benchmarks/bench_stereo.py [--repeat 7]
+Full resolution (issue 19): two pairs of about 1.4 megapixels written to a folder (``left.png``,
+``right.png``, ``disp0.pfm``, no calibration: taken as rectified) and run by the command line,
+``vision-lab run stereo --dataset FOLDER --set cost_volume.max_disparity=0 --json``, in a child process
+whose peak resident memory (``ru_maxrss``) is read when it ends:
 
-The last line is ``RESULT {json}`` with exactly the keys issue 5 names: sgm_bad2_all, sgbm_bad2_all,
-sgm_bad2_pred, sgbm_bad2_pred, sgm_time_ratio (ours / SGBM), census_bad2_pred, stereobm_bad2_pred.
-The line before, ``DETAILS {json}``, adds every method's bad-1/2/4 rates, coverage, end-point error
-and time, census_time_ratio (ours / StereoBM), the StereoBM block size chosen and the CPU count.
+- ``synthetic``: the lab's rendered table scene at 1280 x 1024 with a 0.32 m baseline, true
+  disparities 82 to 208 px, every pixel with truth;
+- ``moto2x``: scikit-image's motorcycle pair upsampled 2 times (1482 x 1000, bilinear; its truth
+  doubled, nearest), disparities 14 to 120 px.
+
+Each runs the default settings with ``max_disparity = 0`` (auto: the range estimated from matched
+SIFT features, reported as ``auto_max_disparity``); its volume (over 2**26 costs) is aggregated by
+rows (``lab.modules.stereo.lean``). Peak memory is that of the whole process (Python, NumPy, OpenCV,
+Numba and the pair included); ``*_base_mb`` is the same process stopped after rectification. Tuned
+``cv2.StereoSGBM`` runs on the same 8-bit pair over the same range (``numDisparities`` the auto range
+rounded up to 16): modes SGBM, HH (8 paths) and 3-way, block 3, 5 or 7, P1 = 8 * 3 * b^2, P2 =
+32 * 3 * b^2, disp12MaxDiff 1, uniquenessRatio 10, speckle 100 / 2; the lowest bad-2 is reported.
+
+    python benchmarks/bench_stereo.py [--repeat 7] [--skip-full-resolution]
+
+The last line is ``RESULT {json}`` with the keys issue 5 names: sgm_bad2_all, sgbm_bad2_all,
+sgm_bad2_pred, sgbm_bad2_pred, sgm_time_ratio (ours / SGBM), census_bad2_pred, stereobm_bad2_pred;
+and issue 19's, for the synthetic pair: lean_peak_mb, bad2_lab, bad2_sgbm (holes counted as errors),
+auto_max_disparity, true_max_disparity, lean_seconds, sgbm_seconds (and the same with the prefix
+``moto2x_`` for the motorcycle pair). The line before, ``DETAILS {json}``, adds every method's bad-1/2/4
+rates, coverage, end-point error and time, census_time_ratio (ours / StereoBM), the StereoBM block
+size chosen, the SGBM setting chosen per pair and the CPU count.
 """
 
 from __future__ import annotations
@@ -34,8 +55,13 @@ import argparse
 import json
 import os
 import statistics
+import subprocess
+import sys
+import tempfile
+import time
 import timeit
-from typing import Literal
+from pathlib import Path
+from typing import Any, Literal
 
 import cv2
 import numpy as np
@@ -49,6 +75,9 @@ MAX_DISPARITY = 63  # 64 disparities, OpenCV's numDisparities = 64
 #: The keys of the RESULT line, exactly those issue 5 names (rates as fractions; the ratio is ours / SGBM).
 RESULT_KEYS = ("sgm_bad2_all", "sgbm_bad2_all", "sgm_bad2_pred", "sgbm_bad2_pred", "sgm_time_ratio",
                "census_bad2_pred", "stereobm_bad2_pred")
+#: Issue 19's keys, per full-resolution pair (the motorcycle's with the prefix moto2x_).
+FULL_RESOLUTION_KEYS = ("lean_peak_mb", "bad2_lab", "bad2_sgbm", "auto_max_disparity", "true_max_disparity",
+                        "lean_seconds", "sgbm_seconds")
 
 
 def ours(left: Image, right: Image, *, method: Literal["sgm", "none"]) -> np.ndarray:
@@ -96,9 +125,109 @@ def row(name: str, errors: dict[str, float], seconds: float) -> str:
             f"{100 * errors['coverage']:9.1f} {errors['epe_px']:7.3f} {1000 * seconds:9.1f}")
 
 
+# ----------------------------------------------------------------------------------------------------
+# Full resolution (issue 19): folders, the command line in a child process, tuned SGBM
+# ----------------------------------------------------------------------------------------------------
+def write_pair(directory: Path, rgb_left: np.ndarray, rgb_right: np.ndarray, truth: np.ndarray) -> None:
+    """``left.png``, ``right.png`` (8-bit) and ``disp0.pfm`` (float32, inf where unknown) in ``directory``."""
+    directory.mkdir(parents=True, exist_ok=True)
+    for name, rgb in (("left", rgb_left), ("right", rgb_right)):
+        cv2.imwrite(str(directory / f"{name}.png"), cv2.cvtColor(rgb, cv2.COLOR_RGB2BGR))
+    cv2.imwrite(str(directory / "disp0.pfm"), np.where(truth >= 0, truth, np.inf).astype(np.float32))
+
+
+def synthetic_pair(directory: Path) -> None:
+    from lab.modules.stereo import synthetic
+
+    loaded = synthetic(scene="table", width=1280, height=1024, baseline=0.32)
+    left, right = (np.clip(loaded.state[n].pixels * 255.0 + 0.5, 0, 255).astype(np.uint8)
+                   for n in ("left_raw", "right_raw"))
+    write_pair(directory, left, right, loaded.truth["disparity"])
+
+
+def motorcycle_2x_pair(directory: Path) -> None:
+    from skimage import data
+
+    left, right, disparity = data.stereo_motorcycle()
+    size = (2 * left.shape[1], 2 * left.shape[0])
+    up = [cv2.resize(image, size, interpolation=cv2.INTER_LINEAR) for image in (left, right)]
+    truth = np.where(np.isfinite(disparity), 2.0 * disparity, -1.0).astype(np.float32)
+    write_pair(directory, *up, cv2.resize(truth, size, interpolation=cv2.INTER_NEAREST).astype(np.float64))
+
+
+def run_cli(folder: Path, *extra: str) -> tuple[dict[str, Any], float, float]:
+    """``vision-lab run stereo --dataset FOLDER --json`` in a child: (its summary, seconds, peak MB)."""
+    code = ("import resource, subprocess, sys, json; r = subprocess.run(sys.argv[1:], capture_output=True, "
+            "text=True); print(json.dumps({'rc': r.returncode, 'out': r.stdout, 'err': r.stderr[-3000:], "
+            "'peak_kb': resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss}))")
+    command = [sys.executable, "-c", code, sys.executable, "-c", "from lab.cli import app; app()", "run",
+               "stereo", "--dataset", str(folder), "--set", "cost_volume.max_disparity=0", "--json", *extra]
+    started = time.monotonic()
+    wrapper = json.loads(subprocess.run(command, capture_output=True, text=True, check=True).stdout)
+    seconds = time.monotonic() - started
+    if wrapper["rc"] != 0:
+        raise RuntimeError(f"vision-lab run failed:\n{wrapper['err']}")
+    return json.loads(wrapper["out"]), seconds, wrapper["peak_kb"] / 1024.0
+
+
+def tuned_sgbm(bgr_left: np.ndarray, bgr_right: np.ndarray, truth: np.ndarray,
+               disparities: int) -> tuple[dict[str, float], float, str]:
+    """The lowest bad-2 (holes counted) of SGBM's modes and block sizes: (errors, seconds, setting)."""
+    modes = {"SGBM": cv2.STEREO_SGBM_MODE_SGBM, "HH": cv2.STEREO_SGBM_MODE_HH,
+             "3WAY": cv2.STEREO_SGBM_MODE_SGBM_3WAY}
+    best: tuple[dict[str, float], float, str] | None = None
+    for mode_name, mode in modes.items():
+        for block in (3, 5, 7):
+            matcher = cv2.StereoSGBM.create(minDisparity=0, numDisparities=disparities, blockSize=block,
+                                            P1=8 * 3 * block * block, P2=32 * 3 * block * block,
+                                            disp12MaxDiff=1, uniquenessRatio=10, speckleWindowSize=100,
+                                            speckleRange=2, mode=mode)
+            started = time.monotonic()
+            disparity = _from_fixed_point(matcher.compute(bgr_left, bgr_right))
+            seconds = time.monotonic() - started
+            errors = disparity_errors(disparity, truth)
+            if best is None or errors["bad2_all"] < best[0]["bad2_all"]:
+                best = (errors, seconds, f"{mode_name}, block {block}")
+    assert best is not None
+    return best
+
+
+def full_resolution(name: str, make: Any, workdir: Path) -> dict[str, Any]:
+    """One full-resolution pair: ours by the command line (auto range, rows) against tuned SGBM."""
+    from lab.modules.stereo import read_disparity
+
+    folder = workdir / name
+    make(folder)
+    truth = read_disparity(str(folder / "disp0.pfm"))
+    bgr = [cv2.imread(str(folder / f"{side}.png")) for side in ("left", "right")]
+    _, _, base_mb = run_cli(folder, "--until", "rectify_pair")
+    result, seconds, peak_mb = run_cli(folder)
+    metrics = result["metrics"]
+    steps = {step["name"]: step for step in result["steps"]}
+    auto = int(metrics["auto_max_disparity"])
+    sgbm_errors, sgbm_seconds, setting = tuned_sgbm(*bgr, truth, 16 * -(-(auto + 1) // 16))
+    height, width = truth.shape
+    print(f"{name}: {width} x {height}, true disparities {truth[truth >= 0].min():.1f} to "
+          f"{truth.max():.1f} px, auto range 0..{auto} ({metrics['range_matches']} matched features)")
+    print(f"  ours (CLI, rows): bad-2 {100 * metrics['bad2_all']:.2f} % (holes counted), coverage "
+          f"{100 * metrics['coverage']:.1f} %, {seconds:.1f} s in all (aggregation "
+          f"{steps['aggregate_costs']['seconds']:.1f} s), peak {peak_mb:.0f} MB (after rectification "
+          f"{base_mb:.0f} MB)")
+    print(f"  cv2.StereoSGBM tuned ({setting}): bad-2 {100 * sgbm_errors['bad2_all']:.2f} %, coverage "
+          f"{100 * sgbm_errors['coverage']:.1f} %, {sgbm_seconds:.2f} s")
+    return {"lean_peak_mb": round(peak_mb, 1), "base_mb": round(base_mb, 1), "bad2_lab": metrics["bad2_all"],
+            "bad2_sgbm": sgbm_errors["bad2_all"], "auto_max_disparity": auto,
+            "true_max_disparity": round(float(truth.max()), 2), "lean_seconds": round(seconds, 2),
+            "aggregate_seconds": steps["aggregate_costs"]["seconds"], "sgbm_seconds": round(sgbm_seconds, 3),
+            "coverage_lab": metrics["coverage"], "coverage_sgbm": sgbm_errors["coverage"],
+            "sgbm_setting": setting, "range_matches": metrics["range_matches"]}
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--repeat", type=int, default=7, help="timed runs per method (median reported)")
+    parser.add_argument("--skip-full-resolution", action="store_true",
+                        help="only the 741 x 500 motorcycle comparison (issue 5)")
     args = parser.parse_args()
 
     loaded = motorcycle()
@@ -146,9 +275,16 @@ def main() -> None:
                         f"{key}_time_s": seconds})
     details.update({"sgm_time_ratio": sgm_ratio, "census_time_ratio": census_ratio,
                     "stereobm_block": best_block, "cpus": cpus})
+    keys = list(RESULT_KEYS)
+    if not args.skip_full_resolution:
+        with tempfile.TemporaryDirectory(prefix="bench-stereo-") as workdir:
+            for prefix, make in (("", synthetic_pair), ("moto2x_", motorcycle_2x_pair)):
+                measured = full_resolution(prefix.rstrip("_") or "synthetic", make, Path(workdir))
+                details.update({prefix + k: v for k, v in measured.items()})
+                keys += [prefix + k for k in FULL_RESOLUTION_KEYS]
     details = {k: round(v, 6) if isinstance(v, float) else v for k, v in details.items()}
     print("DETAILS " + json.dumps(details))
-    print("RESULT " + json.dumps({key: details[key] for key in RESULT_KEYS}))
+    print("RESULT " + json.dumps({key: details[key] for key in keys}))
 
 
 if __name__ == "__main__":
