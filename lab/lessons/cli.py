@@ -7,6 +7,7 @@
     vision-lab lesson run LESSON --report DIR [--dataset NAME] [--seed N]
     vision-lab lesson seed LESSON [--set N]
     vision-lab lesson stats LESSON [--json]
+    vision-lab worker tcp://HOST:PORT [--nthreads N] [--name NAME] [--unsafe-sandbox]
 
 ``grade --seed N`` grades with the assignment seed N (``$VISION_LAB_ASSIGNMENT_SEED`` when no
 ``--seed`` is given): the same file gets the same score every time, and the score the server gives
@@ -276,10 +277,43 @@ def stats_command(
     typer.echo(json.dumps(stats.to_json(), indent=2) if as_json else format_table(stats))
 
 
+def worker_command(
+    scheduler: Annotated[str | None, typer.Argument(
+        help="The Dask scheduler's address, tcp://host:port (default: $VISION_LAB_DASK_SCHEDULER).")] = None,
+    nthreads: Annotated[int, typer.Option("--nthreads", min=1, help="Gradings this worker runs at once "
+                                                                    "(each uses about one core).")] = 1,
+    name: Annotated[str | None, typer.Option("--name", help="The worker's name (recorded with each "
+                                                            "submission it grades).")] = None,
+    host: Annotated[str | None, typer.Option("--host", help="Address the worker listens on (default: the "
+                                                            "one facing the scheduler).")] = None,
+    unsafe_sandbox: Annotated[bool, typer.Option(
+        "--unsafe-sandbox", help="Grade without the bubblewrap sandbox, with Python's audit hook only. For "
+                                 "trusted code only, never for a class.")] = False,
+) -> None:
+    """Start a Dask worker that grades submissions (the server's jobs) until it is stopped.
+
+    The server sends jobs to the scheduler when ``VISION_LAB_DASK_SCHEDULER`` names it; each job
+    runs the submission in the bubblewrap sandbox here and writes its result into the database the
+    job names, which this machine must reach. Without a working sandbox the worker does not start
+    (exit 2, naming the fix).
+    """
+    from lab.lessons.cluster import SCHEDULER_VARIABLE
+
+    with _user_errors():
+        address = scheduler or os.environ.get(SCHEDULER_VARIABLE, "")
+        if not address:
+            raise InvalidValue("SCHEDULER", f"give the scheduler's address (tcp://host:port) or set "
+                                            f"${SCHEDULER_VARIABLE}")
+        from lab.lessons.worker import run_worker
+
+        run_worker(address, nthreads=nthreads, name=name, host=host, unsafe_sandbox=unsafe_sandbox)
+
+
 def register(app: typer.Typer) -> None:
     """Add ``grade`` and the ``lesson`` sub-commands to the ``vision-lab`` app."""
     app.command("grade", help="Grade a submission (or --reference) and write Gradescope's "
                               "results.json.")(grade_command)
+    app.command("worker", help="Start a Dask worker that grades the server's submissions.")(worker_command)
     lesson_app = typer.Typer(help="Lessons: list, validate, run one headless with an HTML report; an "
                                   "assignment's seed and a class's results.", no_args_is_help=True)
     lesson_app.command("list")(list_command)
@@ -291,4 +325,4 @@ def register(app: typer.Typer) -> None:
 
 
 __all__ = ["grade_command", "list_command", "register", "run_command", "seed_command", "stats_command",
-           "validate_command"]
+           "validate_command", "worker_command"]

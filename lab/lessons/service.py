@@ -1,4 +1,4 @@
-"""What the REST API's lesson routes run on: the lesson catalog, the submission queue and its worker pool.
+"""What the REST API's lesson routes run on: the lesson catalog, the submission queue and the grading cluster.
 
 :func:`LessonService.from_env` reads the configuration from the environment:
 
@@ -7,8 +7,16 @@
     ``~/.local/share/vision-lab/submissions.sqlite``).
 ``VISION_LAB_LESSONS_DIR``
     Folder of lessons (default: ``lessons/`` beside the ``lab`` package).
+``VISION_LAB_DASK_SCHEDULER``
+    ``tcp://host:port`` of an existing Dask scheduler whose workers (``vision-lab worker``) grade;
+    unset: an embedded ``LocalCluster`` in this process (:mod:`lab.lessons.cluster`).
 ``VISION_LAB_GRADING_WORKERS``
-    Number of grading threads (default 1; each grading uses one sandbox process).
+    Workers of the embedded cluster (default 1; each grading uses one sandbox process).
+``VISION_LAB_DASK_PROCESSES``
+    ``1``: the embedded cluster's workers are processes rather than threads of the server.
+``VISION_LAB_GRADING_DEADLINE_S``
+    Seconds after its claim a grading with no result is marked ``error`` (default: twice the
+    lesson's ``total_timeout_s`` plus 60 s).
 ``VISION_LAB_INSTRUCTOR_TOKEN``
     When set, the instructor's routes (a lesson's submissions, its assignment seed, a regrade, the
     class's stats, a submission's instructor view) need ``Authorization: Bearer <token>``.
@@ -25,15 +33,21 @@ from __future__ import annotations
 
 import logging
 import os
-from typing import Any
 
+from lab.core.errors import LabError
 from lab.lessons import isolation
-from lab.lessons.format import LessonCatalog
+from lab.lessons.cluster import SCHEDULER_VARIABLE, Dispatcher, GradingCluster
+from lab.lessons.format import LessonCatalog, Limits
+from lab.lessons.jobs import GradingJob, register
 from lab.lessons.sandbox import remove_stale_workdirs
 from lab.lessons.stats import ClassStats, class_stats, latest_per_student
-from lab.lessons.store import GradeFunction, Submission, SubmissionQueue, WorkerPool
+from lab.lessons.store import GradeFunction, Submission, SubmissionQueue
 
 DEFAULT_MAX_SUBMISSION_BYTES = 256 * 1024
+#: A grading's deadline after its claim: ``DEADLINE_FACTOR × total_timeout_s + DEADLINE_MARGIN_S`` (one
+#: retry on another worker after a lost one, and the worker's start-up).
+DEADLINE_FACTOR = 2.0
+DEADLINE_MARGIN_S = 60.0
 
 log = logging.getLogger("lab.lessons")
 
@@ -43,12 +57,16 @@ class LessonService:
 
     def __init__(self, *, catalog: LessonCatalog | None = None, queue: SubmissionQueue | None = None,
                  workers: int = 1, grade: GradeFunction | None = None, instructor_token: str | None = None,
-                 max_submission_bytes: int = DEFAULT_MAX_SUBMISSION_BYTES, poll_s: float = 1.0) -> None:
+                 max_submission_bytes: int = DEFAULT_MAX_SUBMISSION_BYTES, poll_s: float = 1.0,
+                 cluster: GradingCluster | None = None, deadline_s: float | None = None) -> None:
         self.catalog = catalog or LessonCatalog()
         self.queue = queue or SubmissionQueue()
         self.instructor_token = instructor_token or None
         self.max_submission_bytes = int(max_submission_bytes)
-        self.pool = WorkerPool(self.queue, grade or self._grade, workers=workers, poll_s=poll_s)
+        self.cluster = cluster or GradingCluster(workers=workers)
+        self.deadline = deadline_s
+        self.pool = Dispatcher(self.queue, self.cluster, job_of=self.job_of, grade=grade,
+                               deadline_s=self.deadline_s, poll_s=poll_s)
         self.started = False
         self.needs_sandbox = grade is None  # an injected grade function (tests) runs no student code
         self.sandbox_problem: str | None = None
@@ -59,20 +77,35 @@ class LessonService:
         lessons_dir = environ.get("VISION_LAB_LESSONS_DIR")
         return cls(catalog=LessonCatalog(lessons_dir) if lessons_dir else LessonCatalog(),
                    queue=SubmissionQueue(environ.get("VISION_LAB_DATABASE_URL") or None),
-                   workers=int(environ.get("VISION_LAB_GRADING_WORKERS", "1")),
+                   cluster=GradingCluster(scheduler=environ.get(SCHEDULER_VARIABLE) or None,
+                                          workers=int(environ.get("VISION_LAB_GRADING_WORKERS", "1")),
+                                          processes=environ.get("VISION_LAB_DASK_PROCESSES", "") == "1"),
+                   deadline_s=(float(environ["VISION_LAB_GRADING_DEADLINE_S"])
+                               if environ.get("VISION_LAB_GRADING_DEADLINE_S") else None),
                    instructor_token=environ.get("VISION_LAB_INSTRUCTOR_TOKEN"),
                    max_submission_bytes=int(environ.get("VISION_LAB_MAX_SUBMISSION_BYTES",
                                                         DEFAULT_MAX_SUBMISSION_BYTES)))
 
-    def _grade(self, submission: Submission) -> dict[str, Any]:
-        from lab.lessons.grader import grade
+    def job_of(self, submission: Submission) -> GradingJob:
+        """The job grading a claimed submission: where it is, its claim and the lesson's assignment seed."""
+        return GradingJob(database_url=self.queue.url, lessons_dir=str(self.catalog.root),
+                          submission_id=submission.id, lesson=submission.lesson, attempt=submission.attempts,
+                          seed=self.queue.assignment_seed(submission.lesson))
 
-        lesson = self.catalog.get(submission.lesson)
-        return grade(lesson, submission.source, seed=self.queue.assignment_seed(lesson.id)).results_json()
+    def deadline_s(self, lesson: str) -> float:
+        """Seconds from its claim after which a grading of ``lesson`` with no result is given up."""
+        if self.deadline is not None:
+            return self.deadline
+        try:
+            limits = self.catalog.get(lesson).limits
+        except LabError:  # a lesson that no longer loads: its job fails fast and says why
+            limits = Limits()
+        return DEADLINE_FACTOR * limits.total_timeout_s + DEADLINE_MARGIN_S
 
     def start(self) -> int:
         """Remove what a crash left in the temporary folder, requeue what a killed server left running, check
-        the sandbox and start the workers; returns how many were requeued.
+        the sandbox (when grading runs in this process; a ``vision-lab worker`` checks its own) and start
+        the grading cluster and its dispatcher; returns how many were requeued.
 
         Without a working sandbox (:func:`lab.lessons.isolation.check`) no worker starts: queued
         submissions stay queued (nothing is lost or scored 0) and :meth:`submit` answers
@@ -84,7 +117,8 @@ class LessonService:
         if removed:
             log.info("removed %d submission folders left by a crash", removed)
         requeued = self.queue.requeue_running()
-        if self.needs_sandbox:
+        register(self.queue, self.catalog)  # jobs run in this process use the server's own objects
+        if self.needs_sandbox and self.cluster.scheduler is None:
             try:
                 isolation.check(isolation.default_isolation())
             except isolation.SandboxUnavailable as exc:

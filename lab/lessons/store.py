@@ -1,17 +1,26 @@
-"""Submissions that survive the server: a SQLAlchemy table used as a persistent queue, and the worker pool.
+"""Submissions that survive the server: a SQLAlchemy table used as a persistent queue.
 
-A submission is written (committed) before its id is returned, with status ``queued``. Workers
-claim the oldest queued submission with a conditional UPDATE (``queued`` -> ``running``: one
-worker wins, on SQLite and PostgreSQL alike), grade it in a worker thread (the student's code runs
-in the sandbox's child process) and store Gradescope's results.json with status ``done``. When
-the server starts, whatever is still ``running`` was interrupted (the server was killed mid-
+A submission is written (committed) before its id is returned, with status ``queued``. The grading
+dispatcher (:mod:`lab.lessons.cluster`) claims the oldest queued submissions with a conditional
+UPDATE (``queued`` -> ``running``, ``attempts`` + 1: one claimer wins, on SQLite and PostgreSQL
+alike) and hands each to a Dask worker as a job (:mod:`lab.lessons.jobs`), which stores Gradescope's
+results.json with status ``done``. The table is the one source of truth, and a result is stored
+*exactly once*: :meth:`SubmissionQueue.finish` and :meth:`~SubmissionQueue.fail` write only while the
+row is still ``running`` under the claim's attempt number, so a job Dask ran twice (a worker lost
+mid-job, a result that came after its deadline, a job of a server that was restarted meanwhile)
+cannot overwrite or double a grade (``gradings`` counts the results stored). A claim carries a
+deadline: a running submission past it is marked ``error`` (:meth:`~SubmissionQueue.fail_overdue`).
+
+When the server starts, whatever is still ``running`` was interrupted (the server was killed mid-
 grading) and goes back to ``queued``; a submission interrupted :data:`MAX_ATTEMPTS` times is
 marked ``error`` instead, so one that crashes the grader cannot loop forever.
 
 The database is SQLite (a file in the user's data folder) by default and any SQLAlchemy URL through
-``VISION_LAB_DATABASE_URL`` (``postgresql+psycopg://user:pass@host/course`` for a real course).
-One server process owns a database's queue: requeueing at start-up assumes no other live
-process is grading from the same database.
+``VISION_LAB_DATABASE_URL`` (``postgresql+psycopg://user:pass@host/course`` for a real course). Its
+schema is kept by Alembic (:mod:`lab.lessons.migrations`): opening a database upgrades it, keeping its
+rows. One server process owns a database's queue: requeueing at start-up assumes no other live
+server is dispatching from the same database (workers writing results are fine: their claims are
+void once requeued).
 
 The same database keeps each lesson's *assignment seed* (table ``lesson_assignments``): the secret
 from which the grader derives every hidden dataset of a grading run, drawn once per lesson
@@ -21,17 +30,18 @@ gives the same score. It is never part of a submission's JSON.
 
 from __future__ import annotations
 
+import json
 import logging
 import os
 import secrets
-import threading
 import time
 import uuid
 from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any, cast
 
-from sqlalchemy import Float, Integer, String, Text, create_engine, event, insert, select, update
+from sqlalchemy import (ColumnElement, Float, Integer, String, Text, create_engine, event, insert, select,
+                        update)
 from sqlalchemy.dialects import postgresql, sqlite
 from sqlalchemy.engine import CursorResult, Engine, Result
 from sqlalchemy.exc import IntegrityError
@@ -82,6 +92,10 @@ class SubmissionRow(Base):
     max_score: Mapped[float | None] = mapped_column(Float, nullable=True)
     results: Mapped[str | None] = mapped_column(Text, nullable=True)
     error: Mapped[str | None] = mapped_column(Text, nullable=True)
+    # revision 0002: grading jobs
+    deadline: Mapped[float | None] = mapped_column(Float, nullable=True)
+    worker: Mapped[str | None] = mapped_column(String(200), nullable=True)
+    gradings: Mapped[int] = mapped_column(Integer, default=0, server_default="0")
 
 
 class AssignmentRow(Base):
@@ -121,22 +135,25 @@ class Submission:
     max_score: float | None
     results: dict[str, Any] | None
     error: str | None
+    deadline: float | None = None
+    worker: str | None = None
+    gradings: int = 0
 
     @classmethod
     def of(cls, row: SubmissionRow) -> Submission:
-        import json
-
         return cls(id=row.id, lesson=row.lesson, student=row.student, filename=row.filename,
                    source=row.source, status=row.status, created=row.created, started=row.started,
                    finished=row.finished,
                    attempts=row.attempts, score=row.score, max_score=row.max_score,
-                   results=json.loads(row.results) if row.results else None, error=row.error)
+                   results=json.loads(row.results) if row.results else None, error=row.error,
+                   deadline=row.deadline, worker=row.worker, gradings=row.gradings or 0)
 
     def to_json(self, *, with_results: bool = True) -> dict[str, Any]:
         out: dict[str, Any] = {"id": self.id, "lesson": self.lesson, "student": self.student,
                                "filename": self.filename, "status": self.status, "created": self.created,
                                "started": self.started, "finished": self.finished, "attempts": self.attempts,
-                               "score": self.score, "max_score": self.max_score, "error": self.error}
+                               "score": self.score, "max_score": self.max_score, "error": self.error,
+                               "worker": self.worker, "gradings": self.gradings}
         if with_results:
             out["results"] = self.results
         return out
@@ -179,7 +196,9 @@ class SubmissionQueue:
     def __init__(self, url: str | None = None, *, engine: Engine | None = None) -> None:
         self.url = url or default_database_url()
         self.engine = engine or make_engine(self.url)
-        Base.metadata.create_all(self.engine)
+        from lab.lessons.migrations import upgrade
+
+        upgrade(self.engine)
 
     def submit(self, lesson: str, filename: str, source: str, *, student: str = "") -> str:
         """Store a new submission (committed before this returns); returns its id."""
@@ -189,37 +208,91 @@ class SubmissionQueue:
                                       source=source, status="queued", created=time.time(), attempts=0))
         return submission_id
 
-    def claim(self) -> Submission | None:
-        """Mark the oldest queued submission ``running`` and return it (None when the queue is empty)."""
-        for _ in range(10):  # another worker may win the race for a row: try the next one
+    def claim(self, *, deadline_s: Callable[[str], float] | None = None) -> Submission | None:
+        """Mark the oldest queued submission ``running`` (its ``attempts`` + 1) and return it (None when
+        the queue is empty). ``deadline_s(lesson)``: seconds from now after which the grading is given up
+        (:meth:`fail_overdue`); None: no deadline."""
+        for _ in range(10):  # another claimer may win the race for a row: try the next one
             with Session(self.engine) as session, session.begin():
-                row_id = session.execute(select(SubmissionRow.id).where(SubmissionRow.status == "queued")
-                                         .order_by(SubmissionRow.created, SubmissionRow.id).limit(1)).scalar()
-                if row_id is None:
+                row = session.execute(select(SubmissionRow.id, SubmissionRow.lesson)
+                                      .where(SubmissionRow.status == "queued")
+                                      .order_by(SubmissionRow.created, SubmissionRow.id).limit(1)).first()
+                if row is None:
                     return None
+                row_id, lesson = row
+                now = time.time()
+                deadline = None if deadline_s is None else now + float(deadline_s(lesson))
                 claimed = session.execute(
                     update(SubmissionRow).where(SubmissionRow.id == row_id, SubmissionRow.status == "queued")
-                    .values(status="running", started=time.time(), attempts=SubmissionRow.attempts + 1))
+                    .values(status="running", started=now, attempts=SubmissionRow.attempts + 1,
+                            deadline=deadline, worker=None))
                 if _rowcount(claimed) == 1:
-                    row = session.get(SubmissionRow, row_id)
-                    assert row is not None  # this transaction has just claimed it
-                    return Submission.of(row)
+                    found = session.get(SubmissionRow, row_id)
+                    assert found is not None  # this transaction has just claimed it
+                    return Submission.of(found)
         return None
 
-    def finish(self, submission_id: str, results: dict[str, Any]) -> None:
-        import json
+    def _claimed(self, submission_id: str, attempt: int | None) -> ColumnElement[bool]:
+        """The row while it is still under the claim ``attempt`` (any claim when None)."""
+        condition = (SubmissionRow.id == submission_id) & (SubmissionRow.status == "running")
+        return condition if attempt is None else condition & (SubmissionRow.attempts == attempt)
 
+    def _write(self, submission_id: str, attempt: int | None, **values: Any) -> bool:
         with Session(self.engine) as session, session.begin():
-            session.execute(update(SubmissionRow).where(SubmissionRow.id == submission_id).values(
-                status="done", finished=time.time(), results=json.dumps(results),
-                score=float(results.get("score", 0.0)),
-                max_score=float(sum(t.get("max_score", 0.0) for t in results.get("tests", []))), error=None))
+            written = session.execute(update(SubmissionRow).where(self._claimed(submission_id, attempt))
+                                      .values(**values))
+        return _rowcount(written) == 1
 
-    def fail(self, submission_id: str, error: str) -> None:
-        """Grading itself failed (a bug in the lab or the lesson, never the student's code)."""
-        with Session(self.engine) as session, session.begin():
-            session.execute(update(SubmissionRow).where(SubmissionRow.id == submission_id).values(
-                status="error", finished=time.time(), error=error[:4000]))
+    def mark_started(self, submission_id: str, attempt: int | None, worker: str) -> bool:
+        """A job began on ``worker`` (recorded while the claim holds); whether the claim still holds."""
+        return self._write(submission_id, attempt, worker=worker[:200])
+
+    def finish(self, submission_id: str, results: dict[str, Any], *, attempt: int | None = None,
+               worker: str | None = None) -> bool:
+        """Store results.json (status ``done``) if the submission is still ``running`` under claim
+        ``attempt``; whether it was stored. A second result for the same claim is refused, so a job
+        that ran twice is stored once."""
+        values: dict[str, Any] = {
+            "status": "done", "finished": time.time(), "results": json.dumps(results),
+            "score": float(results.get("score", 0.0)), "error": None, "gradings": SubmissionRow.gradings + 1,
+            "max_score": float(sum(t.get("max_score", 0.0) for t in results.get("tests", [])))}
+        if worker is not None:
+            values["worker"] = worker[:200]
+        return self._write(submission_id, attempt, **values)
+
+    def fail(self, submission_id: str, error: str, *, attempt: int | None = None) -> bool:
+        """Grading itself failed (a bug in the lab or the lesson, a lost job, never the student's code):
+        status ``error`` if the claim ``attempt`` still holds; whether it was written."""
+        return self._write(submission_id, attempt, status="error", finished=time.time(), error=error[:4000])
+
+    def release(self, submission_id: str, attempt: int) -> bool:
+        """A job lost with its scheduler: back to ``queued`` (to be claimed again) if the claim holds, or
+        ``error`` after :data:`MAX_ATTEMPTS` claims."""
+        if attempt >= MAX_ATTEMPTS:
+            return self.fail(submission_id, f"grading was interrupted {MAX_ATTEMPTS} times; ask your "
+                                            "instructor", attempt=attempt)
+        return self._write(submission_id, attempt, status="queued", started=None, deadline=None)
+
+    def fail_overdue(self, now: float | None = None) -> list[tuple[str, int]]:
+        """Mark every ``running`` submission past its deadline ``error`` (no result came in time); the
+        (id, attempt) of each."""
+        now = time.time() if now is None else now
+        with Session(self.engine) as session:
+            overdue = session.execute(select(SubmissionRow.id, SubmissionRow.attempts, SubmissionRow.deadline,
+                                             SubmissionRow.started)
+                                      .where(SubmissionRow.status == "running",
+                                             SubmissionRow.deadline.is_not(None),
+                                             SubmissionRow.deadline < now)).all()
+        given_up = []
+        for row_id, attempt, deadline, started in overdue:
+            waited = (deadline - started) if started is not None and deadline is not None else 0.0
+            if self.fail(row_id, f"no result came within {waited:.0f} s of the grading starting (a grading "
+                                 "worker was lost or overloaded); submit again or ask your instructor",
+                         attempt=attempt):
+                given_up.append((row_id, int(attempt)))
+        if given_up:
+            log.warning("gave up on %d submission(s) past their deadline", len(given_up))
+        return given_up
 
     def requeue_running(self) -> int:
         """At start-up: submissions left ``running`` by a killed server go back to ``queued`` (or
@@ -232,7 +305,7 @@ class SubmissionQueue:
                         error=f"grading was interrupted {MAX_ATTEMPTS} times; ask your instructor")))
             requeued = _rowcount(session.execute(
                 update(SubmissionRow).where(SubmissionRow.status == "running")
-                .values(status="queued", started=None)))
+                .values(status="queued", started=None, deadline=None)))
         if requeued or gave_up:
             log.warning("requeued %d interrupted submission(s), gave up on %d", requeued, gave_up)
         return int(requeued)
@@ -322,71 +395,5 @@ class SubmissionQueue:
         self.engine.dispose()
 
 
+#: What grades a claimed submission: its results.json (tests inject one; the default runs the grader).
 GradeFunction = Callable[[Submission], dict[str, Any]]
-
-
-class WorkerPool:
-    """Threads that take submissions off the queue and grade them, never in a request.
-
-    ``grade`` maps a claimed submission to its results.json; an exception there (a bug in the lab
-    or the lesson) marks the submission ``error`` with the reason. :meth:`wake` is called after a
-    submit so a worker starts at once; workers also poll every ``poll_s`` seconds (other
-    processes may write to the same database).
-    """
-
-    def __init__(self, queue: SubmissionQueue, grade: GradeFunction, *, workers: int = 1,
-                 poll_s: float = 1.0) -> None:
-        if workers < 1:
-            raise ValueError("a worker pool needs at least one worker")
-        self.queue = queue
-        self.grade = grade
-        self.workers = workers
-        self.poll_s = poll_s
-        self._stop = threading.Event()
-        self._wake = threading.Condition()
-        self._threads: list[threading.Thread] = []
-        self.busy = 0
-
-    def start(self) -> None:
-        if self._threads:
-            return
-        self._stop.clear()
-        for index in range(self.workers):
-            thread = threading.Thread(target=self._loop, name=f"grader-{index}", daemon=True)
-            thread.start()
-            self._threads.append(thread)
-
-    def wake(self) -> None:
-        with self._wake:
-            self._wake.notify_all()
-
-    def stop(self, timeout: float = 5.0) -> None:
-        """Stop taking work; a grading in progress finishes (or is requeued at the next start)."""
-        self._stop.set()
-        self.wake()
-        for thread in self._threads:
-            thread.join(timeout=timeout)
-        self._threads = []
-
-    def _loop(self) -> None:
-        while not self._stop.is_set():
-            try:
-                job = self.queue.claim()
-            except Exception:  # the database is unreachable for a moment: try again later
-                log.exception("claiming a submission failed")
-                job = None
-            if job is None:
-                with self._wake:
-                    self._wake.wait(timeout=self.poll_s)
-                continue
-            self.busy += 1
-            try:
-                results = self.grade(job)
-            except Exception as exc:
-                log.exception("grading submission %s failed", job.id)
-                self.queue.fail(job.id, f"grading failed ({type(exc).__name__}: {exc}); this is a problem of "
-                                        "the lab, not of your code")
-            else:
-                self.queue.finish(job.id, results)
-            finally:
-                self.busy -= 1
