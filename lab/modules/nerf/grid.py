@@ -191,6 +191,11 @@ class Occupancy:
         return np.ascontiguousarray(self.cells.detach().cpu().numpy())
 
     @functools.cached_property
+    def rows(self) -> np.ndarray:
+        """The table rows ``(x R + y) R + z`` of the occupied vertices ``(M,)`` int64."""
+        return np.flatnonzero(self.array.reshape(-1)).astype(np.int64)
+
+    @functools.cached_property
     def box(self) -> tuple[float, ...]:
         """Normalized lower and upper corners of a box holding every point whose nearest vertex is occupied
         (the occupied vertices' bounding box widened by a little over half a voxel); lower above upper
@@ -214,6 +219,8 @@ class GridOptions:
     iterations: int
     budget_seconds: float
     preview_every: int
+    #: Fractions of the budget at which the grid is upsampled (R / 4 -> R / 2 -> R).
+    upsample_at: tuple[float, float] = (0.25, 0.5)
 
 
 def _occupied_at(occupied: torch.Tensor, x: torch.Tensor, resolution: int, margin: int = 0) -> torch.Tensor:
@@ -400,6 +407,23 @@ def _adam(field: GridField, learning_rate: float) -> torch.optim.Adam:
         return torch.optim.Adam(field.parameters(), lr=learning_rate)
 
 
+class _Batches:
+    """Random training batches: rays through their pixels' centres, the pixels' colours, and each ray's
+    jitter along itself (a fraction of a step)."""
+
+    def __init__(self, rays: RayBundle, generator: torch.Generator, device: str) -> None:
+        self.origins = torch.as_tensor(rays.origins, device=device)
+        self.directions = torch.as_tensor(rays.directions, device=device)
+        self.colors = torch.as_tensor(rays.colors, device=device)
+        self.generator = generator
+        self.device = device
+
+    def draw(self, count: int) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
+        batch = torch.randint(len(self.origins), (count,), generator=self.generator).to(self.device)
+        jitter = torch.rand((count, 1), generator=self.generator).to(self.device)
+        return self.origins[batch], self.directions[batch], self.colors[batch], jitter
+
+
 def train_grid_field(rays: RayBundle, options: GridOptions, *, background: torch.Tensor,
                      preview: PreviewRays | None, rng: np.random.Generator,
                      device: str) -> Generator[Progress, None, TrainingRun]:
@@ -407,9 +431,7 @@ def train_grid_field(rays: RayBundle, options: GridOptions, *, background: torch
     learning rate decaying to a tenth over the budget. Yields progress every :data:`REPORT_EVERY`
     iterations and a preview every ``preview_every``."""
     generator = torch.Generator().manual_seed(int(rng.integers(0, 2**62)))
-    origins = torch.as_tensor(rays.origins, device=device)
-    directions = torch.as_tensor(rays.directions, device=device)
-    colors = torch.as_tensor(rays.colors, device=device)
+    batches = _Batches(rays, generator, device)
     stages = [max(4, options.resolution // 4), max(4, options.resolution // 2), options.resolution]
     field = GridField(stages[0]).to(device)
     optimizer = _adam(field, options.learning_rate)
@@ -423,7 +445,7 @@ def train_grid_field(rays: RayBundle, options: GridOptions, *, background: torch
         spent = len(losses) / options.iterations
         if budget > 0:
             spent = max(spent, elapsed / budget)
-        stage = 0 if spent < 0.25 else 1 if spent < 0.5 else 2
+        stage = 0 if spent < options.upsample_at[0] else 1 if spent < options.upsample_at[1] else 2
         if field.resolution != stages[stage]:
             field = field.upsampled(stages[stage])
             optimizer = _adam(field, options.learning_rate)
@@ -432,11 +454,10 @@ def train_grid_field(rays: RayBundle, options: GridOptions, *, background: torch
             occupied = field.occupancy() if len(losses) >= OCCUPANCY_EVERY else None  # not before a warm-up
         for group in optimizer.param_groups:
             group["lr"] = options.learning_rate * 0.1 ** min(spent, 1.0)
-        batch = torch.randint(len(origins), (options.batch_rays,), generator=generator).to(device)
-        jitter = torch.rand((options.batch_rays, 1), generator=generator).to(device)
-        color, used = batch_colors(field, origins[batch], directions[batch], rays.bounds,
-                                   background=background, occupied=occupied, jitter=jitter)
-        mse = torch.mean((color - colors[batch]) ** 2)
+        origins, directions, target, jitter = batches.draw(options.batch_rays)
+        color, used = batch_colors(field, origins, directions, rays.bounds, background=background,
+                                   occupied=occupied, jitter=jitter)
+        mse = torch.mean((color - target) ** 2)
         optimizer.zero_grad(set_to_none=True)
         mse.backward()
         optimizer.step()
