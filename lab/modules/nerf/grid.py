@@ -9,16 +9,23 @@ field needs no network: trilinearly interpolated values on a grid, rendered by t
   (colour without view dependence: the lab's scenes are Lambertian), ``sigma = softplus(raw + shift)``
   with a near-zero start (``shift`` = :data:`DENSITY_SHIFT`; DVGO's ``alpha_init`` of 1e-2 never empties
   space on a CPU budget), colour ``sigmoid(raw)``;
-- trilinear interpolation as a weighted sum of the 8 corner rows (``embedding_bag`` with per-sample
-  weights without gradient, ``index_select`` with it; see :meth:`GridField.sample`) instead of
-  ``grid_sample``; the tables are updated by torch's fused Adam;
+- one interleaved table ``(R^3, 4)`` (raw density, raw RGB: a vertex is one cache line), updated by
+  torch's fused Adam;
 - coarse to fine: the grid starts at ``R / 4`` and is upsampled (trilinearly) to ``R / 2`` and ``R`` at a
   quarter and at half of the budget; the step along rays is half a voxel of the current grid;
-- empty-space skipping: samples in cells whose dilated density is below :data:`EMPTY_SIGMA` are not
-  evaluated (the occupancy grid is refreshed every :data:`OCCUPANCY_EVERY` iterations); early ray
-  termination: a first pass without gradient gives every sample's weight, and only samples of weight
-  >= :data:`SKIP_BELOW` (so none behind an opaque surface) are evaluated with gradient (DVGO's "fast
-  colour threshold").
+- empty-space skipping: samples whose nearest vertex has a dilated density below :data:`EMPTY_SIGMA` are
+  not evaluated (the occupancy grid is refreshed every :data:`OCCUPANCY_EVERY` iterations);
+- on the CPU, one compiled loop per ray (:mod:`~lab.modules.nerf._kernels`, numba; :func:`composite_grid`
+  and the autograd function :class:`CompositeGrid`): the ray is clipped to the box of occupied vertices,
+  marched, interpolated, composited front to back and ended once its transmittance is below
+  :data:`STOP_BELOW` (early termination); the backward pass marches it again and scatters Plenoxels'
+  closed-form gradient into the table. Its oracle is
+  :func:`~lab.modules.nerf.reference.composite_grid_reference`;
+- elsewhere (CUDA) the vectorized path :func:`render_grid`: packed candidates by a two-level search
+  (:func:`grid_candidates`), trilinear gathers of the 8 corner rows (``embedding_bag`` without gradient,
+  ``index_select`` with it; :meth:`GridField.sample`), a first pass without gradient for every sample's
+  weight, and only samples of weight >= :data:`SKIP_BELOW` evaluated with gradient (DVGO's "fast colour
+  threshold"). It is also what draws the weights along one ray.
 """
 
 from __future__ import annotations
@@ -529,6 +536,7 @@ def grid_from(checkpoint: GridCheckpoint, device: str = "cpu") -> GridField:
                      torch.as_tensor(checkpoint.color)).to(device)
 
 
-__all__ = ["DENSITY_SHIFT", "EMPTY_SIGMA", "GROUP", "OCCUPANCY_EVERY", "SKIP_BELOW", "GridCheckpoint",
-           "GridField", "GridOptions", "Occupancy", "grid_candidates", "grid_checkpoint_from", "grid_from",
+__all__ = ["DENSITY_SHIFT", "EMPTY_SIGMA", "GROUP", "OCCUPANCY_EVERY", "SKIP_BELOW", "STOP_BELOW",
+           "CompositeGrid", "GridCheckpoint", "GridField", "GridMarch", "GridOptions", "Occupancy",
+           "batch_colors", "composite_grid", "grid_candidates", "grid_checkpoint_from", "grid_from",
            "grid_step", "render_grid", "render_grid_image", "train_grid_field"]
