@@ -1,0 +1,111 @@
+"""Grading on a separately started Dask scheduler and two ``vision-lab worker`` processes on 127.0.0.1.
+
+Submissions go in over REST; the server (the lesson app, configured from the environment with
+``VISION_LAB_DASK_SCHEDULER``) only claims and dispatches, the workers grade in their own sandboxes
+and write the results. One worker is killed (SIGKILL) while it grades a slow submission: Dask runs
+the job again on the other, and every submission ends graded exactly once in the database, on
+SQLite and on a real PostgreSQL server.
+"""
+
+from __future__ import annotations
+
+import os
+import signal
+import socket
+import subprocess
+import sys
+import time
+
+import pytest
+from fastapi.testclient import TestClient
+
+from lab.api.lessons import build_app
+from lab.lessons.service import LessonService
+from lesson_helpers import FIXTURES, REPO, submission
+from postgres_server import database_url  # noqa: F401  (a fixture: SQLite, then PostgreSQL)
+
+
+def free_port() -> int:
+    with socket.socket() as probe:
+        probe.bind(("127.0.0.1", 0))
+        return probe.getsockname()[1]
+
+
+def wait_for(predicate, timeout: float, what: str):
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        found = predicate()
+        if found:
+            return found
+        time.sleep(0.05)
+    raise AssertionError(f"{what} within {timeout} s")
+
+
+ENV = {**os.environ, "PYTHONPATH": os.pathsep.join([str(FIXTURES), str(REPO)]),
+       "VISION_LAB_LESSONS_DIR": str(FIXTURES / "lessons")}
+
+
+@pytest.fixture(scope="module")
+def cluster(tmp_path_factory):
+    """A scheduler and ``ensure_workers()``: two ``vision-lab worker`` processes (killed ones replaced); the
+    workers know no database: each job names its own."""
+    log = open(tmp_path_factory.mktemp("cluster") / "cluster.log", "w")  # noqa: SIM115  (closed below)
+    port = free_port()
+    address = f"tcp://127.0.0.1:{port}"
+    scheduler = subprocess.Popen([sys.executable, "-m", "distributed.cli.dask_scheduler", "--host", "127.0.0.1",
+                                  "--port", str(port), "--no-dashboard"], env=ENV, stdout=log, stderr=log)
+    workers: dict[str, subprocess.Popen] = {}
+
+    def ensure_workers() -> dict[str, subprocess.Popen]:
+        for name in ("w1", "w2"):
+            if name not in workers or workers[name].poll() is not None:
+                workers[name] = subprocess.Popen(
+                    [sys.executable, "-c", "from lab.cli import app; app()", "worker", address, "--name", name,
+                     "--host", "127.0.0.1"], env=ENV, cwd=str(REPO), stdout=log, stderr=log)
+        return workers
+
+    try:
+        yield address, ensure_workers, log.name
+    finally:
+        for process in [*workers.values(), scheduler]:
+            process.kill()  # test processes: no graceful shutdown needed (a sandbox dies with its worker)
+            process.wait(timeout=15)
+        log.close()
+
+
+@pytest.mark.timeout(180)
+def test_two_workers_grade_over_rest_and_a_killed_worker_loses_nothing(cluster, database_url):  # noqa: F811
+    address, ensure_workers, log = cluster
+    workers = ensure_workers()
+    slow = submission("toy", "solution.py").replace(
+        "def make_noisy(images, *, sigma=0.05, rng):\n",
+        "def make_noisy(images, *, sigma=0.05, rng):\n    import time\n    time.sleep(0.3)\n")
+    texts = [slow, submission("toy", "solution.py"), slow, submission("toy", "wrong_sums.py")]
+    service = LessonService.from_env({**ENV, "VISION_LAB_DATABASE_URL": database_url,
+                                      "VISION_LAB_DASK_SCHEDULER": address})
+    with TestClient(build_app(service)) as client:
+        wait_for(lambda: service.cluster.capacity() == 2, 90, "two workers did not join")
+        ids = []
+        for text in texts:
+            response = client.post("/api/lessons/00-toy/submissions",
+                                   files={"file": ("s.py", text.encode(), "text/x-python")})
+            assert response.status_code == 202, response.text
+            ids.append(response.json()["id"])
+        slow_one = wait_for(lambda: next((s for s in (service.queue.get(ids[0]), service.queue.get(ids[2]))
+                                          if s.status == "running" and s.worker), None),
+                            60, "no slow submission started on a worker")
+        killed = slow_one.worker
+        workers[killed].send_signal(signal.SIGKILL)  # mid-grading: no shutdown, its sandbox dies with it
+        workers[killed].wait(timeout=10)
+
+        def graded():
+            bodies = [client.get(f"/api/submissions/{i}").json() for i in ids]
+            return bodies if all(b["status"] in ("done", "error") for b in bodies) else None
+
+        bodies = wait_for(graded, 120, "the submissions were not all graded")
+    assert [b["status"] for b in bodies] == ["done"] * 4, open(log).read()[-4000:]
+    assert [b["score"] for b in bodies] == [6.0, 6.0, 6.0, 2.0]
+    rows = {i: service.queue.get(i) for i in ids}
+    assert all(row.gradings == 1 and row.attempts == 1 for row in rows.values())  # graded once, never re-claimed
+    assert {row.worker for row in rows.values()} <= {"w1", "w2"}
+    assert rows[slow_one.id].worker != killed  # Dask ran the killed worker's job again on the other one
