@@ -8,6 +8,7 @@
     vision-lab lesson seed LESSON [--set N]
     vision-lab lesson stats LESSON [--json]
     vision-lab worker tcp://HOST:PORT [--nthreads N] [--name NAME] [--unsafe-sandbox]
+    vision-lab grade-all LESSON FOLDER --out DIR
 
 ``grade --seed N`` grades with the assignment seed N (``$VISION_LAB_ASSIGNMENT_SEED`` when no
 ``--seed`` is given): the same file gets the same score every time, and the score the server gives
@@ -28,6 +29,7 @@ from __future__ import annotations
 import contextlib
 import json
 import os
+import sys
 from collections.abc import Iterator
 from pathlib import Path
 from typing import TYPE_CHECKING, Annotated
@@ -309,11 +311,46 @@ def worker_command(
         run_worker(address, nthreads=nthreads, name=name, host=host, unsafe_sandbox=unsafe_sandbox)
 
 
+def grade_all_command(
+    lesson: Annotated[str, typer.Argument(help="Lesson id (01-calibration) or name (calibration).")],
+    folder: Annotated[Path, typer.Argument(help="A folder of submissions, one .py per student.")],
+    out: Annotated[Path, typer.Option("--out", help="Write scores.csv and each student's results.json "
+                                                    "here.")] = Path("grades"),
+    unsafe_sandbox: Annotated[bool, typer.Option(
+        "--unsafe-sandbox", help="Grade without the bubblewrap sandbox (trusted code only).")] = False,
+) -> None:
+    """Grade a folder of submissions through the server's path (the submissions database, Dask jobs,
+    the lesson's assignment seed) and export the scores (CSV) and Gradescope's results.json."""
+    from lab.lessons.grade_all import export, grade_folder
+    from lab.lessons.isolation import allow_unsafe
+
+    if unsafe_sandbox:
+        allow_unsafe(True)
+    with _user_errors():
+        from lab.lessons.service import LessonService
+
+        service = LessonService.from_env()
+        try:
+            service.start()
+            if service.sandbox_problem is not None:
+                from lab.lessons.isolation import SandboxUnavailable
+
+                raise SandboxUnavailable(service.sandbox_problem)
+            graded = grade_folder(service, lesson, folder, progress=sys.stderr.isatty())
+        finally:
+            service.stop()
+        table = export(graded, out)
+    done = [s for s in graded.submissions if s.status == "done"]
+    typer.echo(f"{len(done)}/{len(graded.submissions)} graded; scores in {table}")
+
+
 def register(app: typer.Typer) -> None:
     """Add ``grade`` and the ``lesson`` sub-commands to the ``vision-lab`` app."""
     app.command("grade", help="Grade a submission (or --reference) and write Gradescope's "
                               "results.json.")(grade_command)
     app.command("worker", help="Start a Dask worker that grades the server's submissions.")(worker_command)
+    app.command("grade-all", help="Grade a folder of submissions; scores.csv and results.json per "
+                                  "student.")(grade_all_command)
     lesson_app = typer.Typer(help="Lessons: list, validate, run one headless with an HTML report; an "
                                   "assignment's seed and a class's results.", no_args_is_help=True)
     lesson_app.command("list")(list_command)
@@ -324,5 +361,14 @@ def register(app: typer.Typer) -> None:
     app.add_typer(lesson_app, name="lesson")
 
 
-__all__ = ["grade_command", "list_command", "register", "run_command", "seed_command", "stats_command",
-           "validate_command", "worker_command"]
+__all__ = [
+    "grade_all_command",
+    "grade_command",
+    "list_command",
+    "register",
+    "run_command",
+    "seed_command",
+    "stats_command",
+    "validate_command",
+    "worker_command",
+]

@@ -22,6 +22,7 @@ from __future__ import annotations
 
 import logging
 import threading
+import time
 from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
@@ -66,8 +67,9 @@ class GradingCluster:
         if self.scheduler is not None:
             self.client = Client(self.scheduler, timeout="30s", set_as_default=False)
             return
+        # the scheduler's and workers' HTTP endpoints exist even without a dashboard: loopback only, any port
         self._local = LocalCluster(n_workers=self.workers, threads_per_worker=1, processes=self.processes,
-                                   dashboard_address=None, worker_dashboard_address=None,
+                                   dashboard_address="127.0.0.1:0", worker_dashboard_address="127.0.0.1:0",
                                    host="127.0.0.1" if self.processes else None)
         self.client = Client(self._local, set_as_default=False)
         if self.processes:
@@ -147,13 +149,22 @@ class Dispatcher:
             self._wake.notify_all()
 
     def stop(self, timeout: float = 5.0) -> None:
-        """Stop claiming; jobs still running finish on their workers (their results are stored) or, with
-        the embedded cluster closed, are requeued at the next start."""
+        """Stop claiming; jobs still running finish on their workers (their results are stored). With the
+        embedded threads cluster, a running grading gets ``timeout`` seconds to finish before the cluster
+        closes; what is left is requeued at the next start."""
         self._stop.set()
         self.wake()
         for thread in self._threads:
             thread.join(timeout=timeout)
         self._threads = []
+        pending = [entry.future for entry in self._in_flight.values()]
+        if pending and self.cluster.in_process:  # this process's gradings: let them finish, as before
+            end = time.monotonic() + timeout
+            while any(not future.done() for future in pending) and time.monotonic() < end:
+                time.sleep(0.05)
+            left = sum(not future.done() for future in pending)
+            if left:
+                log.warning("stopping with %d grading(s) running: requeued at the next start", left)
         self._in_flight.clear()
         self.cluster.close()
         if self._token is not None:

@@ -31,6 +31,7 @@ the lesson changed.
 
 from __future__ import annotations
 
+import contextlib
 import logging
 import os
 
@@ -96,10 +97,10 @@ class LessonService:
         """Seconds from its claim after which a grading of ``lesson`` with no result is given up."""
         if self.deadline is not None:
             return self.deadline
-        try:
-            limits = self.catalog.get(lesson).limits
-        except LabError:  # a lesson that no longer loads: its job fails fast and says why
-            limits = Limits()
+        limits = Limits()  # an injected grade function (tests) grades no lesson: the lesson is not loaded
+        if self.needs_sandbox:
+            with contextlib.suppress(LabError):  # a lesson that does not load: its job fails fast, saying why
+                limits = self.catalog.get(lesson).limits
         return DEADLINE_FACTOR * limits.total_timeout_s + DEADLINE_MARGIN_S
 
     def start(self) -> int:

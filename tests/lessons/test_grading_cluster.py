@@ -109,3 +109,46 @@ def test_two_workers_grade_over_rest_and_a_killed_worker_loses_nothing(cluster, 
     assert all(row.gradings == 1 and row.attempts == 1 for row in rows.values())  # graded once, never re-claimed
     assert {row.worker for row in rows.values()} <= {"w1", "w2"}
     assert rows[slow_one.id].worker != killed  # Dask ran the killed worker's job again on the other one
+
+
+def test_a_worker_needs_a_scheduler_and_a_working_sandbox(monkeypatch):
+    from typer.testing import CliRunner
+
+    from lab.cli import app
+    from lab.lessons import isolation
+
+    monkeypatch.delenv("VISION_LAB_DASK_SCHEDULER", raising=False)
+    missing = CliRunner().invoke(app, ["worker"])
+    assert missing.exit_code == 2 and "VISION_LAB_DASK_SCHEDULER" in missing.output
+    monkeypatch.setattr(isolation, "default_isolation", lambda: isolation.Isolation(bwrap="/nonexistent/bwrap"))
+    refused = CliRunner().invoke(app, ["worker", "tcp://127.0.0.1:9"])  # never reached: it stops before joining
+    assert refused.exit_code == 2 and "error: sandbox" in refused.output and "bubblewrap" in refused.output
+
+
+def test_grade_all_grades_a_folder_through_the_queue_and_exports_csv_and_results(tmp_path, monkeypatch):
+    import csv
+    import json
+
+    from typer.testing import CliRunner
+
+    from lab.cli import app
+
+    folder = tmp_path / "class"
+    folder.mkdir()
+    (folder / "ana.py").write_text(submission("toy", "solution.py"))
+    (folder / "bo.py").write_text(submission("toy", "wrong_sums.py"))
+    database = f"sqlite:///{tmp_path / 'db.sqlite'}"
+    env = {"VISION_LAB_DATABASE_URL": database, "VISION_LAB_LESSONS_DIR": str(FIXTURES / "lessons"),
+           "VISION_LAB_DASK_SCHEDULER": ""}
+    result = CliRunner().invoke(app, ["grade-all", "00-toy", str(folder), "--out", str(tmp_path / "out")], env=env)
+    assert result.exit_code == 0, result.output
+    assert "2/2 graded" in result.output
+    with open(tmp_path / "out" / "scores.csv", newline="") as handle:
+        rows = {row["student"]: row for row in csv.DictReader(handle)}
+    assert {k: (v["status"], float(v["score"])) for k, v in rows.items()} == {"ana": ("done", 6.0),
+                                                                            "bo": ("done", 2.0)}
+    assert json.loads((tmp_path / "out" / "bo" / "results.json").read_text())["score"] == 2.0
+    from lab.lessons.store import SubmissionQueue
+
+    stored = SubmissionQueue(database).list("00-toy")
+    assert sorted(s.student for s in stored) == ["ana", "bo"] and all(s.gradings == 1 for s in stored)
