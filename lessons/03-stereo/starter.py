@@ -11,7 +11,7 @@ d = 0 .. max_disparity. A cost volume is (H, W, D) with D = max_disparity + 1.
 import numpy as np
 
 
-def cost_volume(left, right, *, cost, window=5, max_disparity=64):
+def cost_volume(left, right, *, cost, window=5, max_disparity):
     """The matching cost of every left pixel at every disparity, averaged over a square window.
 
     Args:

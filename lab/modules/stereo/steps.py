@@ -170,7 +170,7 @@ def resolve_max_disparity(left: Image, right: Image, max_disparity: int) -> int:
 # ----------------------------------------------------------------------------------------------------
 def cost_volume(left: Image, right: Image, *, cost: Cost = "census",
                 window: Annotated[int, Range(1, 31)] = 5,
-                max_disparity: Annotated[int, Range(0, 1024)] = 64,
+                max_disparity: Annotated[int, Range(0, 1024)] = 0,
                 ) -> Annotated[np.ndarray | CensusRows, "cost_volume"]:
     """The matching cost of every left pixel at every disparity, aggregated over a square window.
 

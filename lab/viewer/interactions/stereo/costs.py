@@ -236,7 +236,7 @@ def matching_settings(state: Mapping[str, Any], history: list[Any], defaults: Ma
     if params is not None and volume is not None and np.ndim(volume) == 3:
         return MatchingSettings(str(params["cost"]), int(params["window"]), int(np.shape(volume)[2]) - 1,
                                 "the session's cost volume")
-    top = int(defaults.get("max_disparity", 64))
+    top = int(defaults.get("max_disparity", 64)) or max(16, width // 4)  # 0: auto, estimated when it runs
     if truth_disparity is not None and np.any(np.asarray(truth_disparity) >= 0):
         top = max(top, math.ceil(float(np.max(truth_disparity))) + 2)
     return MatchingSettings(str(defaults.get("cost", "census")), int(defaults.get("window", 5)),
