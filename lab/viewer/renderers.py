@@ -13,6 +13,14 @@ changed ones (values are immutable, so a changed value is a new object) and remo
 that were invalidated. The same drawer serves a browser tab, and :func:`lab.viewer.export_scene_html`
 (a headless server's scene, saved as one HTML file).
 
+A changed value's drawing is changed in place where it can be (:meth:`Renderer.redraw`): a GUI picture or
+chart keeps its element for as long as its value is drawn, and is removed only when the value is gone.
+viser's browser client applies a frame's GUI updates after the frame's adds and removes, and viser's
+``add_image`` is an add followed by an update (the picture travels as an update): an element removed and
+added again for a new value, when two refreshes reach a slow page within one frame, gets its update after
+its removal, and the browser logs "Tried to update non-existent component" (issue 16). Scene nodes are
+replaced under their name (the client orders scene updates against removals itself).
+
 Pure helpers (no viser): :func:`to_rgb8`, :func:`overlay_view` and :func:`curve_image` return
 ``uint8`` arrays, so reports and tests can use them directly.
 """
@@ -384,6 +392,8 @@ class Drawn:
     refresh_view: Callable[[], None] | None = None
     #: Named widgets inside a drawn container (an image set's ``slider`` and ``image``).
     parts: dict[str, Any] = field(default_factory=dict)
+    #: The renderer that drew it (set by :class:`StateDrawer`: only it can :meth:`Renderer.redraw` it).
+    renderer: Renderer | None = None
 
     def remove(self) -> None:
         for handle in reversed(self.handles):
@@ -844,13 +854,15 @@ class StateDrawer:
             if old is not None and old.fingerprint == fingerprint:
                 continue
             try:
-                if old is not None and renderer.redraw(self.canvas, name, value, state, float(position), old):
+                if old is not None and old.renderer is renderer and \
+                        renderer.redraw(self.canvas, name, value, state, float(position), old):
                     old.fingerprint = fingerprint
-                else:
+                else:  # new, or of another type now (another module's value of that name)
                     if old is not None:
                         old.remove()
                         del self.drawn[name]
                     self.drawn[name] = renderer.draw(self.canvas, name, value, state, float(position))
+                    self.drawn[name].renderer = renderer
                 self.errors.pop(name, None)
                 changed.append(name)
             except Exception as exc:  # report it in the GUI, keep drawing the rest

@@ -222,7 +222,9 @@ class ClientView:
             self.session = session
             session.listeners.append(self.progress.on_progress)
             self.clear_error()
-            self.drawer.clear()
+            # what is drawn stays for the refresh below: a value of the same name changes in place, the others
+            # go (a GUI element removed right after its last update logs an error in the browser: renderers)
+            self.drawer.canvas.views.clear()
             self.camera.reset()
             self._seen, self._drawn = None, {}
             self.tab.session_id_text.value = session.id

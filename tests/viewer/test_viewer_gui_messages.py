@@ -90,7 +90,7 @@ def gui_messages(server) -> GuiMessages:
 
 def elements(drawer: StateDrawer) -> dict[str, dict[str, str]]:
     """The uuid of each GUI element the drawer holds, by value name and part."""
-    return {name: {part: handle._impl.uuid for part, handle in drawn.parts.items() if hasattr(handle, "_impl")}
+    return {name: {part: h._impl.uuid for part, h in drawn.parts.items() if hasattr(h, "_impl")}
             for name, drawn in drawer.drawn.items()}
 
 
@@ -118,7 +118,8 @@ def test_new_values_change_the_pictures_and_charts_in_place(server, gui_messages
     assert elements(drawer) == made  # the same elements
     parts = {name: drawn.parts for name, drawn in drawer.drawn.items()}
     photo, picture, chart = parts["photo"]["image"], parts["views"]["image"], parts["loss"]["chart"]
-    assert ("_data",) in gui_messages.updates(made["photo"]["image"], first) and photo.label == "photo (30x23)"
+    assert ("_data",) in gui_messages.updates(made["photo"]["image"], first)
+    assert photo.label == "photo (30x23)"
     assert ("_data",) in gui_messages.updates(made["rms"]["chart"], first)
     assert "corners: 4" in picture.label  # the overlays changed: the view is drawn again
     assert {("data",), ("series",)} <= set(gui_messages.updates(made["loss"]["chart"], first))
@@ -181,7 +182,8 @@ class Marked:
 
 def develop(views: ImageSet, *, gain: float = 1.0) -> Developed:
     """A picture and a bar chart."""
-    return Developed(gray(min(gain * 0.5, 1.0)), Curve(np.arange(3.0), np.array([1.0, 2.0, gain]), kind="bar"))
+    bars = Curve(np.arange(3.0), np.array([1.0, 2.0, gain]), kind="bar")
+    return Developed(gray(min(gain * 0.5, 1.0)), bars)
 
 
 def paint(photo: Image) -> Generator[Progress, None, Painted]:
@@ -235,3 +237,24 @@ def test_the_loss_plot_of_a_long_step_keeps_its_element_across_runs(server, stor
     assert uuid not in gui_messages.removed() and ("data",) in gui_messages.updates(uuid)
     assert len(plot.data[0]) == 5  # the second run's losses only
     assert gui_messages.updates_of_the_removed() == []
+
+
+def test_a_new_session_of_the_module_keeps_the_elements_of_its_names(server, store, gui_messages):
+    view = ClientView(server, store, ModuleCatalog({"pictures": PICTURES}), is_client=False, background=False)
+    view.start({})
+    view.run_all()
+    made = elements(view.drawer)
+    start = gui_messages.mark()
+    view.open_session(store.create(PICTURES))  # "New session": only the dataset's values so far
+    assert set(view.drawer.drawn) == {"views"} and elements(view.drawer)["views"] == made["views"]
+    assert gui_messages.updated_then_removed(start) == []
+    assert not {uuid for parts in made.values() for uuid in parts.values()} - {*made["views"].values()} - \
+        {*gui_messages.removed(start)}  # the others went with their values
+
+
+def test_a_name_drawn_as_another_type_is_drawn_anew(server, gui_messages):
+    drawer = StateDrawer(Canvas(scene=server.scene, gui=server.gui))
+    drawer.sync({"x": gray(0.5)})
+    picture = elements(drawer)["x"]["image"]
+    assert drawer.sync({"x": Curve(np.arange(4.0), np.arange(4.0))}) == ["x"] and drawer.errors == {}
+    assert gui_messages.removed() == [picture] and "chart" in drawer.drawn["x"].parts
