@@ -147,3 +147,29 @@ def test_texture_image_file_decodes_a_12_megapixel_photo_small(folder):
 
     loaded = image_file(path=str(folder / "jpeg" / "photo0.jpg"), max_size=128)
     assert loaded.state["sample"].pixels.shape == (96, 128, 3)
+
+
+def test_stereo_folder_reads_a_12_megapixel_pair_at_the_working_size(tmp_path):
+    from lab.modules.stereo.datasets import folder as stereo_folder
+
+    left = photo(11)
+    right = np.roll(left, -40, axis=1)  # a rectified pair: 40 px of disparity at full size
+    cv2.imwrite(str(tmp_path / "left.jpg"), left)
+    cv2.imwrite(str(tmp_path / "right.jpg"), right)
+    truth = np.full((HEIGHT, WIDTH), 40.0, dtype=np.float32)
+    truth[:10] = -1.0  # unknown rows stay unknown
+    cv2.imwrite(str(tmp_path / "disp.pfm"), truth)
+    (tmp_path / "calib.txt").write_text("cam0=[3000 0 1999.5; 0 3000 1499.5; 0 0 1]\n"
+                                        "cam1=[3000 0 1999.5; 0 3000 1499.5; 0 0 1]\ndoffs=0\nbaseline=100\n"
+                                        f"width={WIDTH}\nheight={HEIGHT}\n")
+    loaded = stereo_folder(path=str(tmp_path))
+    left_image = loaded.state["left_raw"]
+    assert (left_image.width, left_image.height) == (1600, 1200)
+    assert "working size" in loaded.description
+    K = loaded.state["calibration"].K_left
+    np.testing.assert_allclose(K[:2, 2], [799.5, 599.5])
+    np.testing.assert_allclose(K[0, 0], 1200.0)
+    disparity = loaded.truth["disparity"]
+    assert disparity.shape == (1200, 1600)
+    np.testing.assert_allclose(disparity[disparity >= 0], 16.0)  # 40 px at 0.4 of the size
+    assert np.all(disparity[:3] == -1.0)

@@ -25,7 +25,8 @@ import numpy as np
 
 from lab.core import Image, InvalidValue, Loaded, Range
 from lab.core.budgets import check_dataset_pixels
-from lab.data.files import IMAGE_SUFFIXES, check_folder, read_image_file, read_images
+from lab.data.files import IMAGE_SUFFIXES, WORKING_SIDE, check_folder, read_image_file, read_working_images
+from lab.geometry.camera import scale_intrinsics
 from lab.geometry.rectification import StereoCalibration, relative_pose, stereo_rectify
 
 #: Calibration of scikit-image's motorcycle pair (its docstring; Middlebury 2014 downsampled 4 times).
@@ -70,6 +71,24 @@ def _downsampled_calibration(calibration: StereoCalibration, factor: int) -> Ste
     return StereoCalibration(_downsampled_K(calibration.K_left, factor), calibration.dist_left,
                              _downsampled_K(calibration.K_right, factor), calibration.dist_right,
                              calibration.R, calibration.T)
+
+
+def _scaled_calibration(calibration: StereoCalibration, scale: float) -> StereoCalibration:
+    """The calibration of a pair both of whose images were resized by ``scale`` (R and T unchanged)."""
+    if scale == 1.0:
+        return calibration
+    return StereoCalibration(scale_intrinsics(calibration.K_left, scale), calibration.dist_left,
+                             scale_intrinsics(calibration.K_right, scale), calibration.dist_right,
+                             calibration.R, calibration.T)
+
+
+def _scaled_disparity(disparity: np.ndarray, scale: float, size: tuple[int, int]) -> np.ndarray:
+    """A true disparity map of the file's size at the working ``size`` ``(width, height)``: nearest
+    neighbour (a mean would blend across depth edges), known values times ``scale``; -1 unknown."""
+    import cv2
+
+    nearest = cv2.resize(disparity.astype(np.float32), size, interpolation=cv2.INTER_NEAREST)
+    return np.where(nearest >= 0, nearest.astype(np.float64) * scale, -1.0)
 
 
 def _motorcycle_calibration() -> StereoCalibration:
@@ -339,7 +358,8 @@ def read_calibration(path: str) -> StereoCalibration:
                                f"and T (a calibrated pair to rectify); found {sorted(raw)}")
 
 
-def folder(*, path: str, downsample: Annotated[int, Range(1, 8)] = 1) -> Loaded:
+def folder(*, path: str, downsample: Annotated[int, Range(1, 8)] = 1,
+           max_side: Annotated[int, Range(0, 16384)] = WORKING_SIDE) -> Loaded:
     """A user's stereo pair from a folder: ``left.*`` and ``right.*`` (or Middlebury's ``im0``/``im1``).
 
     Optional files: a calibration (``calib.yml``/``calib.yaml``/``calib.json``/``calib.txt``, see
@@ -351,6 +371,9 @@ def folder(*, path: str, downsample: Annotated[int, Range(1, 8)] = 1) -> Loaded:
         path: the folder.
         downsample: integer factor by which to shrink the images (block means), the camera
             matrices and the true disparity; large photos need it to keep the cost volume small.
+        max_side: read a pair larger than this on its longer side at this size first
+            (:func:`lab.data.files.read_working_images`: a 12-megapixel pair is read at 1600 x 1200, its
+            camera matrices and true disparity scaled with it; 0: full resolution).
     """
     directory = check_folder(os.path.expanduser(str(path)))
     left_path = _find(directory, LEFT_NAMES, IMAGE_SUFFIXES)
@@ -358,11 +381,13 @@ def folder(*, path: str, downsample: Annotated[int, Range(1, 8)] = 1) -> Loaded:
     if left_path is None or right_path is None:
         raise InvalidValue("path", f"{path!r} needs a left and a right image named left.* and right.* (or "
                                    f"im0.*, im1.*) in a format OpenCV reads")
-    left, right = read_images([left_path, right_path])
-    if left.pixels.shape[:2] != right.pixels.shape[:2]:
+    read = read_working_images([left_path, right_path], max_side=int(max_side))
+    if read.original_sizes[0] != read.original_sizes[1]:
+        (lw, lh), (rw, rh) = read.original_sizes
         raise InvalidValue("path", f"the images differ in size: {os.path.basename(left_path)} is "
-                                   f"{left.width} x {left.height}, {os.path.basename(right_path)} is "
-                                   f"{right.width} x {right.height}")
+                                   f"{lw} x {lh}, {os.path.basename(right_path)} is {rw} x {rh}")
+    left, right = read.images
+    scale = read.scales[0]
     calibration_path = next((os.path.join(directory, n) for n in os.listdir(directory)
                              if n.lower() in CALIBRATION_NAMES), None)
     if calibration_path is None:
@@ -371,8 +396,10 @@ def folder(*, path: str, downsample: Annotated[int, Range(1, 8)] = 1) -> Loaded:
         calibration = StereoCalibration.rectified(K, 1.0)
         how = "no calibration: taken as rectified, f = image width, baseline 1"
     else:
-        calibration = read_calibration(calibration_path)
+        calibration = _scaled_calibration(read_calibration(calibration_path), scale)
         how = f"calibration {os.path.basename(calibration_path)}"
+    if read.note:
+        how += f"; {read.note}"
     factor = int(downsample)
     if factor > 1:
         if min(left.width, left.height) < 2 * factor:
@@ -388,7 +415,10 @@ def folder(*, path: str, downsample: Annotated[int, Range(1, 8)] = 1) -> Loaded:
             raise InvalidValue("path", f"{os.path.basename(disparity_path)}: a true disparity goes with a "
                                        "pair that is rectified already, but the calibration describes an "
                                        "unrectified pair")
-        disparity = _downsample_disparity(read_disparity(disparity_path), factor)
+        disparity = read_disparity(disparity_path)
+        if scale != 1.0 and (disparity.shape[1], disparity.shape[0]) == read.original_sizes[0]:
+            disparity = _scaled_disparity(disparity, scale, (read.images[0].width, read.images[0].height))
+        disparity = _downsample_disparity(disparity, factor)
         if disparity.shape != (left.height, left.width):
             raise InvalidValue("path", f"{os.path.basename(disparity_path)} is {disparity.shape[1]} x "
                                        f"{disparity.shape[0]}, the images {left.width} x {left.height}")
