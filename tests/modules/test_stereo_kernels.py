@@ -10,7 +10,8 @@ from stereo_pairs import shifted_pair
 
 from lab.core import CapacityExceeded, Image, InvalidControl, InvalidValue, kernels
 from lab.modules.stereo import (COSTS, MAX_VOLUME_ENTRIES, aggregate_costs, best_two_costs,
-                                best_two_costs_reference, box_mean, box_mean_reference, census_costs,
+                                best_two_costs_reference, block_match_realtime,
+                                block_match_realtime_reference, box_mean, box_mean_reference, census_costs,
                                 census_transform, census_transform_reference, cost_volume, costs_around,
                                 hamming_costs, hamming_costs_reference, quantize_costs, rank_transform,
                                 refine_subpixel, right_disparity, right_disparity_reference,
@@ -328,3 +329,66 @@ def test_right_disparity_and_best_two_match_references():
     np.testing.assert_array_equal(best, expected_best)
     np.testing.assert_array_equal(second, expected_second)
 
+
+
+# ----------------------------------------------------------------------------------------------------
+# Real-time block matching (issue 19 item 3): integer SAD by running sums against its reference
+# ----------------------------------------------------------------------------------------------------
+@pytest.mark.parametrize("block,max_disparity", [(9, 31), (5, 7), (3, 1), (1, 4), (7, 40)])
+def test_realtime_block_matching_equals_its_reference_on_random_pairs(block, max_disparity, monkeypatch):
+    """Integer SADs on 8-bit levels: the running-sum kernel and the whole-slice reference agree exactly,
+    ties (frequent on these levels) included, on one band and on many thin ones."""
+    left = RNG.integers(0, 256, (37, 90), dtype=np.uint8)
+    right = np.roll(left, -5, axis=1) // 2 + RNG.integers(0, 128, (37, 90), dtype=np.uint8)
+    expected = block_match_realtime_reference(left, right, max_disparity=max_disparity, block=block)
+    assert np.array_equal(block_match_realtime(left, right, max_disparity=max_disparity, block=block,
+                                               parallel=False), expected)
+    monkeypatch.setattr(kernels, "workers", lambda: 7)  # many thin bands
+    assert np.array_equal(block_match_realtime(left, right, max_disparity=max_disparity, block=block),
+                          expected)
+    r = block // 2
+    valid = expected >= 0
+    assert valid[r:37 - r, r + max_disparity:90 - r].all()
+    assert valid.sum() == (37 - 2 * r) * (90 - 2 * r - max_disparity)
+
+
+def test_realtime_block_matching_equals_its_reference_on_the_synthetic_rig():
+    from lab.modules.stereo import synthetic
+
+    loaded = synthetic(width=160, height=120)
+    left, right = (loaded.state[name].gray() for name in ("left_raw", "right_raw"))  # floats in [0, 1]
+    fast = block_match_realtime(left, right, max_disparity=31, block=9)
+    assert np.array_equal(fast, block_match_realtime_reference(left, right, max_disparity=31, block=9))
+    to8 = [np.rint(image * 255.0).astype(np.uint8) for image in (left, right)]
+    assert np.array_equal(fast, block_match_realtime(*to8, max_disparity=31, block=9))  # floats: 8-bit levels
+    truth = loaded.truth["disparity"]
+    inside = (fast >= 0) & (truth >= 0)
+    assert np.mean(np.abs(fast[inside] - truth[inside]) <= 1.0) > 0.8  # a sanity check of the matches
+
+
+@pytest.mark.parametrize("disparity", [0, 6, 19])
+def test_realtime_block_matching_finds_a_constant_shift(disparity):
+    """A texture seen ``d`` px further left in the right image: every valid pixel gets ``d`` (SAD 0), every
+    pixel whose window leaves the image is -1, and the pipeline's SAD block matching agrees inside."""
+    left, right = shifted_pair(disparity, height=30, width=70, seed=3)
+    found = block_match_realtime(left.gray(), right.gray(), max_disparity=24, block=5)
+    assert np.all(found[2:28, 26:68] == disparity)
+    assert np.all(found[:2] == -1) and np.all(found[28:] == -1) and np.all(found[:, :26] == -1)
+    assert np.all(found[:, 68:] == -1)
+    volume = cost_volume(left, right, cost="sad", window=5, max_disparity=24)
+    pipeline = winner_take_all(aggregate_costs(volume, method="none"))
+    assert np.array_equal(pipeline[2:28, 26:68], found[2:28, 26:68])
+
+
+def test_realtime_block_matching_refuses_bad_input():
+    gray = np.zeros((20, 40), np.uint8)
+    with pytest.raises(InvalidControl, match="odd"):
+        block_match_realtime(gray, gray, block=4)
+    with pytest.raises(InvalidValue, match="differ in size"):
+        block_match_realtime(gray, gray[:, :30])
+    with pytest.raises(InvalidValue, match="grey image"):
+        block_match_realtime(np.zeros((20, 40, 3), np.uint8), gray)
+    with pytest.raises(InvalidValue, match=r"\[0, 1\]"):
+        block_match_realtime(np.full((20, 40), 2.0), gray)
+    with pytest.raises(InvalidControl, match="at least"):
+        block_match_realtime(gray, gray, max_disparity=31, block=11)

@@ -51,11 +51,11 @@ Ground truth (``Session.truth``, never a step input): ``disparity`` (H, W) with 
 The package, in reading order: :mod:`.steps` (the steps above, in pipeline order, with their
 results); the math they call, by topic: :mod:`.costs` (matching costs, box filter, census),
 :mod:`.sgm` (semi-global matching), :mod:`.winners` (winners of a volume), :mod:`.filters`,
-:mod:`.rectify`, :mod:`.depth`; :mod:`.evaluate` (comparisons with the truth, the viewer's error
-map and cost curves); :mod:`.datasets` (the pairs and their truth). The Numba kernels are in the
-private :mod:`._kernels`; each fast function ``x`` has a slow readable ``x_reference`` in
-:mod:`.reference`, the tests' oracle (naming as in :mod:`lab.core.kernels`). This file is the only
-import surface.
+:mod:`.rectify`, :mod:`.depth`, :mod:`.realtime` (SAD block matching at video rate); :mod:`.evaluate`
+(comparisons with the truth, the viewer's error map and cost curves); :mod:`.datasets` (the pairs and
+their truth). The Numba kernels are in the private :mod:`._kernels`; each fast function ``x`` has a
+slow readable ``x_reference`` in :mod:`.reference`, the tests' oracle (naming as in
+:mod:`lab.core.kernels`). This file is the only import surface.
 """
 
 from __future__ import annotations
@@ -76,10 +76,11 @@ from lab.modules.stereo.evaluate import (BAD_THRESHOLDS, cost_curves, disparity_
 from lab.modules.stereo.filters import HOLE, colorize_disparity, fill_holes, remove_peaks
 from lab.modules.stereo.lean import (CensusRows, RowWinners, block_matching_rows, census_rows,
                                      lean_memory_bytes, semi_global_matching_rows)
+from lab.modules.stereo.realtime import block_match_realtime
 from lab.modules.stereo.rectify import row_misalignment
-from lab.modules.stereo.reference import (best_two_costs_reference, box_mean_reference,
-                                          census_transform_reference, hamming_costs_reference,
-                                          right_disparity_reference, sgm_reference)
+from lab.modules.stereo.reference import (best_two_costs_reference, block_match_realtime_reference,
+                                          box_mean_reference, census_transform_reference,
+                                          hamming_costs_reference, right_disparity_reference, sgm_reference)
 from lab.modules.stereo.sgm import (SGM_DIRECTIONS, quantize_costs, semi_global_matching, sgm_inputs,
                                     volume_range)
 from lab.modules.stereo.steps import (DenseReconstruction, DisparityRange, FilteredDisparity, RectifiedPair,
@@ -114,7 +115,8 @@ __all__ = [
     "MOTORCYCLE_CENTRE_PX", "MOTORCYCLE_DOFFS_PX", "MOTORCYCLE_FOCAL_PX", "NCC_FLAT_VARIANCE",
     "PIPELINE", "SGM_DIRECTIONS", "VIEWS", "CensusRows", "Cost", "DenseReconstruction", "DisparityRange",
     "FilteredDisparity", "RangeMatches", "RectifiedPair", "RowWinners", "aggregate_costs",
-    "best_two_costs", "best_two_costs_reference", "block_matching_rows", "box_mean",
+    "best_two_costs", "best_two_costs_reference", "block_match_realtime",
+    "block_match_realtime_reference", "block_matching_rows", "box_mean",
     "box_mean_reference", "census_costs", "census_rows", "census_transform",
     "census_transform_reference", "colorize_disparity", "cost_curves", "cost_volume", "costs_around",
     "depth_from_disparity", "disparity_errors", "error_map", "estimate_disparity_range",

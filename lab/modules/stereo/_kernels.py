@@ -537,14 +537,64 @@ def _best_two_costs_kernel(volume, best, second, y0, y1):
 
 
 # ----------------------------------------------------------------------------------------------------
+# Real-time block matching: integer SAD by running column sums (block_match_realtime, in .realtime)
+# ----------------------------------------------------------------------------------------------------
+@kernel
+def _block_match_realtime_kernel(left, right, max_disparity, radius, out, y0, y1):
+    """Rows ``y0:y1`` of the valid region: the winner-take-all disparity of the integer SAD over
+    ``(2 radius + 1)^2`` windows, written to ``out`` (the caller fills the rest with -1).
+
+    ``columns[x, d]`` holds the SAD down the window's column ``x`` (rows ``y - radius .. y + radius``)
+    at disparity ``d``; moving to the next row adds the row that enters and subtracts the one that
+    leaves, and each window sum is the running sum of ``2 radius + 1`` of them along the row, so the
+    work is O(W D) per row whatever the window. Ties go to the smaller disparity (``np.argmin``)."""
+    _H, W = left.shape
+    D = max_disparity + 1
+    x0 = max_disparity  # every disparity's right column x - d stays in the image from here
+    columns = np.zeros((W, D), np.int32)
+    sums = np.zeros(D, np.int32)
+    for k in range(y0 - radius, y0 + radius + 1):
+        for x in range(x0, W):
+            a = np.int32(left[k, x])
+            for d in range(D):
+                columns[x, d] += abs(a - np.int32(right[k, x - d]))
+    for y in range(y0, y1):
+        if y > y0:
+            enter, leave = y + radius, y - radius - 1
+            for x in range(x0, W):
+                a = np.int32(left[enter, x])
+                b = np.int32(left[leave, x])
+                for d in range(D):
+                    columns[x, d] += (abs(a - np.int32(right[enter, x - d]))
+                                      - abs(b - np.int32(right[leave, x - d])))
+        for d in range(D):
+            sums[d] = 0
+        for x in range(x0, x0 + 2 * radius + 1):
+            for d in range(D):
+                sums[d] += columns[x, d]
+        for x in range(x0 + radius, W - radius):
+            best = sums[0]
+            winner = 0
+            for d in range(1, D):
+                if sums[d] < best:
+                    best = sums[d]
+                    winner = d
+            out[y, x] = winner
+            if x + radius + 1 < W:
+                for d in range(D):
+                    sums[d] += columns[x + radius + 1, d] - columns[x - radius, d]
+
+
+# ----------------------------------------------------------------------------------------------------
 # Warm-up (lab.core.kernels): every cost, SGM on 4 and 8 paths, the winners, the filters, on a tiny pair
 # ----------------------------------------------------------------------------------------------------
 def _warm_up() -> None:
     """The steps from the cost volume to the filtered disparity on a 64 x 48 synthetic pair, once per cost,
     the Hamming costs of census codes (the lesson's helper; the step sums them by rows), and SGM and block
-    matching by rows (the path of volumes too large to keep) on a 16 x 12 pair."""
-    from lab.modules.stereo import (COSTS, PIPELINE, block_matching_rows, census_rows, census_transform,
-                                    hamming_costs, semi_global_matching_rows)
+    matching by rows (the path of volumes too large to keep) on a 16 x 12 pair, and real-time block
+    matching (8-bit SAD) on a 24 x 12 pair."""
+    from lab.modules.stereo import (COSTS, PIPELINE, block_match_realtime, block_matching_rows, census_rows,
+                                    census_transform, hamming_costs, semi_global_matching_rows)
 
     codes = census_transform(np.zeros((8, 12), np.float32), 5)
     hamming_costs(codes, codes, 4)
@@ -555,6 +605,7 @@ def _warm_up() -> None:
     rows = census_rows(np.zeros((12, 16), np.float32), np.ones((12, 16), np.float32), 4, 5)  # volumes by rows
     semi_global_matching_rows(rows, P1=0.05, P2=1.0, paths=8)
     block_matching_rows(rows)
+    block_match_realtime(np.zeros((12, 24), np.uint8), np.zeros((12, 24), np.uint8), max_disparity=4, block=3)
 
 
 register_warm_up("stereo", ("cost_volume", "aggregate_costs", "left_right_check", "refine_subpixel",

@@ -11,6 +11,7 @@ from __future__ import annotations
 import numpy as np
 
 from lab.modules.stereo.costs import census_words, shifted_columns
+from lab.modules.stereo.realtime import INVALID, gray_levels
 from lab.modules.stereo.sgm import SGM_DIRECTIONS
 
 
@@ -117,3 +118,23 @@ def best_two_costs_reference(volume: np.ndarray) -> tuple[np.ndarray, np.ndarray
     near = np.abs(np.arange(volume.shape[2])[None, None, :] - winner[:, :, None]) <= 1
     second = np.where(near, np.inf, volume).min(axis=2)
     return volume.min(axis=2).astype(np.float32), second.astype(np.float32)
+
+
+def block_match_realtime_reference(left: np.ndarray, right: np.ndarray, *, max_disparity: int = 31,
+                                   block: int = 9) -> np.ndarray:
+    """:func:`block_match_realtime` with one whole-image slice per disparity: ``|L(x) - R(x - d)|`` on the
+    8-bit levels, its window means by the summed-area table of :func:`box_mean_reference` (float32 means
+    of integer sums: distinct sums stay distinct and in order, so the argmin is the integer SAD's),
+    ``np.argmin`` over the disparities, and -1 where a window leaves the image."""
+    a = gray_levels(left, "left").astype(np.float64)
+    b = gray_levels(right, "right").astype(np.float64)
+    H, W = a.shape
+    r = block // 2
+    costs = np.empty((H, W, max_disparity + 1), np.float64)
+    for d in range(max_disparity + 1):
+        difference = np.abs(a - b[:, np.maximum(np.arange(W) - d, 0)])
+        costs[:, :, d] = box_mean_reference(difference, block)
+    disparity = np.argmin(costs, axis=2).astype(np.int64)
+    valid = np.zeros((H, W), bool)
+    valid[r:H - r, r + max_disparity:W - r] = True
+    return np.where(valid, disparity, INVALID)
