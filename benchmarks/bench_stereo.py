@@ -38,20 +38,31 @@ Numba and the pair included); ``*_base_mb`` is the same process stopped after re
 rounded up to 16): modes SGBM, HH (8 paths) and 3-way, block 3, 5 or 7, P1 = 8 * 3 * b^2, P2 =
 32 * 3 * b^2, disp12MaxDiff 1, uniquenessRatio 10, speckle 100 / 2; the lowest bad-2 is reported.
 
-    python benchmarks/bench_stereo.py [--repeat 7] [--skip-full-resolution]
+Real time (issue 19 item 3): :func:`lab.modules.stereo.block_match_realtime` (winner-take-all 8-bit SAD,
+9 x 9 blocks, 32 disparities, running sums) on a sequence of 320 x 240 grey frames (the motorcycle pair
+and the synthetic table rig, each resized to 320 x 240, taken in turn), ``--realtime-frames`` frames
+after a warm-up, on one thread and on the lab's kernel thread pool (bands of rows), in frames per
+second, beside ``cv2.StereoBM_create(numDisparities=32, blockSize=9)`` on the same frames (OpenCV's
+threads, and one thread), and the seeds' table: SRI SVS 30 fps, Point Grey Triclops 20 fps, PARTS
+FPGA 42 fps.
+
+    python benchmarks/bench_stereo.py [--repeat 7] [--skip-full-resolution] [--realtime-frames 300]
 
 The last line is ``RESULT {json}`` with the keys issue 5 names: sgm_bad2_all, sgbm_bad2_all,
 sgm_bad2_pred, sgbm_bad2_pred, sgm_time_ratio (ours / SGBM), census_bad2_pred, stereobm_bad2_pred;
 and issue 19's, for the synthetic pair: lean_peak_mb, bad2_lab, bad2_sgbm (holes counted as errors),
 auto_max_disparity, true_max_disparity, lean_seconds, sgbm_seconds (and the same with the prefix
-``moto2x_`` for the motorcycle pair). The line before, ``DETAILS {json}``, adds every method's bad-1/2/4
-rates, coverage, end-point error and time, census_time_ratio (ours / StereoBM), the StereoBM block
-size chosen, the SGBM setting chosen per pair and the CPU count.
+``moto2x_`` for the motorcycle pair); and the real-time frames per second, realtime_fps (ours on the
+thread pool) and stereobm_realtime_fps (StereoBM, OpenCV's threads). The line before, ``DETAILS {json}``,
+adds every method's bad-1/2/4 rates, coverage, end-point error and time, census_time_ratio (ours /
+StereoBM), the StereoBM block size chosen, the SGBM setting chosen per pair, the CPU count, and the
+one-thread frames per second and the load average of the real-time run.
 """
 
 from __future__ import annotations
 
 import argparse
+import functools
 import json
 import os
 import statistics
@@ -67,8 +78,9 @@ import cv2
 import numpy as np
 
 from lab.core import Image
-from lab.modules.stereo import (aggregate_costs, cost_volume, disparity_errors, filter_disparity,
-                                left_right_check, motorcycle, refine_subpixel, winner_take_all)
+from lab.modules.stereo import (aggregate_costs, block_match_realtime, cost_volume, disparity_errors,
+                                filter_disparity, left_right_check, motorcycle, refine_subpixel,
+                                winner_take_all)
 
 MAX_DISPARITY = 63  # 64 disparities, OpenCV's numDisparities = 64
 
@@ -78,6 +90,10 @@ RESULT_KEYS = ("sgm_bad2_all", "sgbm_bad2_all", "sgm_bad2_pred", "sgbm_bad2_pred
 #: Issue 19's keys, per full-resolution pair (the motorcycle's with the prefix moto2x_).
 FULL_RESOLUTION_KEYS = ("lean_peak_mb", "bad2_lab", "bad2_sgbm", "auto_max_disparity", "true_max_disparity",
                         "lean_seconds", "sgbm_seconds")
+#: Issue 19 item 3's keys: frames per second at 320 x 240 with 32 disparities.
+REALTIME_KEYS = ("realtime_fps", "stereobm_realtime_fps")
+#: The seeds' real-time stereo table (320 x 240, 32 disparities, SAD block matching), frames per second.
+SEED_REALTIME_FPS = {"SRI SVS (Pentium III)": 30.0, "Point Grey Triclops": 20.0, "PARTS FPGA": 42.0}
 
 
 def ours(left: Image, right: Image, *, method: Literal["sgm", "none"]) -> np.ndarray:
@@ -223,11 +239,66 @@ def full_resolution(name: str, make: Any, workdir: Path) -> dict[str, Any]:
             "sgbm_setting": setting, "range_matches": metrics["range_matches"]}
 
 
+# ----------------------------------------------------------------------------------------------------
+# Real time (issue 19 item 3): 320 x 240, 32 disparities, frames per second
+# ----------------------------------------------------------------------------------------------------
+def realtime_frames() -> list[tuple[np.ndarray, np.ndarray]]:
+    """The motorcycle pair and the synthetic table rig as 320 x 240 8-bit grey pairs."""
+    from lab.modules.stereo import synthetic
+
+    frames = []
+    for loaded in (motorcycle(), synthetic(scene="table", width=320, height=240)):
+        pair = []
+        for name in ("left_raw", "right_raw"):
+            gray = np.clip(loaded.state[name].gray() * 255.0 + 0.5, 0, 255).astype(np.uint8)
+            pair.append(cv2.resize(gray, (320, 240), interpolation=cv2.INTER_AREA))
+        frames.append((pair[0], pair[1]))
+    return frames
+
+
+def frames_per_second(match: Any, frames: list[tuple[np.ndarray, np.ndarray]], count: int) -> float:
+    """``count`` frames through ``match(left, right)``, the pairs in turn, after one warm-up frame each."""
+    for left, right in frames:
+        match(left, right)
+    started = time.perf_counter()
+    for index in range(count):
+        match(*frames[index % len(frames)])
+    return count / (time.perf_counter() - started)
+
+
+def realtime(count: int) -> dict[str, float]:
+    frames = realtime_frames()
+    matcher = cv2.StereoBM.create(numDisparities=32, blockSize=9)
+    threads = cv2.getNumThreads()
+    pool = functools.partial(block_match_realtime, max_disparity=31, block=9)
+    single = functools.partial(block_match_realtime, max_disparity=31, block=9, parallel=False)
+    fps = {"realtime_fps": frames_per_second(pool, frames, count),
+           "realtime_fps_1thread": frames_per_second(single, frames, count),
+           "stereobm_realtime_fps": frames_per_second(matcher.compute, frames, count)}
+    cv2.setNumThreads(1)
+    try:
+        fps["stereobm_realtime_fps_1thread"] = frames_per_second(matcher.compute, frames, count)
+    finally:
+        cv2.setNumThreads(threads)
+    load = os.getloadavg()[0]
+    print(f"real time: 320 x 240, 32 disparities, 9 x 9 SAD, {count} frames (2 pairs in turn), load average "
+          f"{load:.1f}")
+    print(f"  ours block_match_realtime: {fps['realtime_fps']:.0f} fps (kernel thread pool), "
+          f"{fps['realtime_fps_1thread']:.0f} fps (1 thread)")
+    print(f"  cv2.StereoBM: {fps['stereobm_realtime_fps']:.0f} fps (OpenCV's {threads} threads), "
+          f"{fps['stereobm_realtime_fps_1thread']:.0f} fps (1 thread)")
+    seeds = ", ".join(f"{name} {value:.0f} fps" for name, value in SEED_REALTIME_FPS.items())
+    print(f"  the seeds' table: {seeds}")
+    return {**fps, "realtime_load_average": load}
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--repeat", type=int, default=7, help="timed runs per method (median reported)")
     parser.add_argument("--skip-full-resolution", action="store_true",
                         help="only the 741 x 500 motorcycle comparison (issue 5)")
+    parser.add_argument("--realtime-frames", type=int, default=300,
+                        help="frames timed per method at 320 x 240 (issue 19 item 3)")
     args = parser.parse_args()
 
     loaded = motorcycle()
@@ -275,7 +346,8 @@ def main() -> None:
                         f"{key}_time_s": seconds})
     details.update({"sgm_time_ratio": sgm_ratio, "census_time_ratio": census_ratio,
                     "stereobm_block": best_block, "cpus": cpus})
-    keys = list(RESULT_KEYS)
+    details.update(realtime(args.realtime_frames))
+    keys = list(RESULT_KEYS) + list(REALTIME_KEYS)
     if not args.skip_full_resolution:
         with tempfile.TemporaryDirectory(prefix="bench-stereo-") as workdir:
             for prefix, make in (("", synthetic_pair), ("moto2x_", motorcycle_2x_pair)):

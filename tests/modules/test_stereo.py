@@ -505,12 +505,15 @@ def test_the_benchmarks_result_line_has_exactly_the_issues_keys(monkeypatch, cap
     monkeypatch.setattr(bench, "motorcycle", lambda: motorcycle(downsample=4))
     assert bench.FULL_RESOLUTION_KEYS[:4] == ("lean_peak_mb", "bad2_lab", "bad2_sgbm", "auto_max_disparity")
     # the full-resolution pairs of issue 19 take minutes: measured by running the benchmark itself
-    monkeypatch.setattr(sys, "argv", ["bench_stereo.py", "--repeat", "1", "--skip-full-resolution"])
+    monkeypatch.setattr(sys, "argv", ["bench_stereo.py", "--repeat", "1", "--skip-full-resolution",
+                                      "--realtime-frames", "4"])
     bench.main()
     lines = capsys.readouterr().out.strip().splitlines()
     assert lines[-1].startswith("RESULT ") and lines[-2].startswith("DETAILS ")
     result = json.loads(lines[-1][len("RESULT "):])
-    assert tuple(result) == bench.RESULT_KEYS
+    assert bench.REALTIME_KEYS == ("realtime_fps", "stereobm_realtime_fps")  # issue 19 item 3
+    assert tuple(result) == bench.RESULT_KEYS + bench.REALTIME_KEYS
+    assert all(result[k] > 0 for k in bench.REALTIME_KEYS)
     assert all(0.0 <= result[k] <= 1.0 for k in bench.RESULT_KEYS if k != "sgm_time_ratio")
     assert result["sgm_time_ratio"] > 0
     details = json.loads(lines[-2][len("DETAILS "):])
