@@ -40,7 +40,7 @@ from typing import Any
 import numpy as np
 import torch
 
-from lab.core import Image, InvalidValue, Progress
+from lab.core import Cancelled, Image, InvalidValue, Progress
 from lab.core.kernels import bands, in_parallel
 from lab.modules.nerf._kernels import _render_grid_backward_kernel, _render_grid_kernel
 from lab.modules.nerf.evaluate import psnr_from_mse
@@ -483,9 +483,12 @@ def train_grid_field(rays: RayBundle, options: GridOptions, *, background: torch
             per_ray = np.mean(evaluated[-REPORT_EVERY:]) / options.batch_rays
             psnr = np.mean(psnrs[-REPORT_EVERY:])
             recent = float(np.mean(losses[-REPORT_EVERY:]))
-            yield Progress(iteration=done, total=options.iterations, loss=recent, values=values,
-                           message=f"grid {field.resolution}^3, PSNR {psnr:.2f} dB, "
-                                   f"{per_ray:.1f} samples/ray, {elapsed:.1f} s")
+            try:
+                yield Progress(iteration=done, total=options.iterations, loss=recent, values=values,
+                               message=f"grid {field.resolution}^3, PSNR {psnr:.2f} dB, "
+                                       f"{per_ray:.1f} samples/ray, {elapsed:.1f} s")
+            except Cancelled:  # the runner's Cancel: the grid trained so far is the result
+                break
     tail = evaluated[-max(1, len(evaluated) // 10):]
     return TrainingRun(field, np.asarray(losses), np.asarray(psnrs), elapsed,
                        float(np.mean(tail)) / options.batch_rays)

@@ -6,6 +6,8 @@ configuration has them), and takes an Adam step on the mean squared colour error
 learning rate decays exponentially, ``lr(f) = lr_0 decay^f`` with ``f`` the fraction of the budget
 spent (the paper: 5e-4 decaying to 5e-5, i.e. ``decay`` = 0.1, over its run). The budget is a number
 of iterations and, optionally, seconds of training (previews are not counted); whichever ends first.
+A :class:`~lab.core.Cancelled` thrown in where the loop yields (the runner's Cancel) ends it too, with
+the network trained so far as the result.
 Randomness (initial weights, batches, jitter) comes from the step's ``rng``; torch's global state is
 left untouched.
 """
@@ -19,7 +21,7 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
-from lab.core import Curve, Image, Progress
+from lab.core import Cancelled, Curve, Image, Progress
 from lab.modules.nerf.evaluate import psnr_from_mse
 from lab.modules.nerf.model import NerfMLP, render_image, render_rays
 from lab.modules.nerf.values import FieldConfig, RayBundle
@@ -116,9 +118,12 @@ def train_field(rays: RayBundle, config: FieldConfig, options: TrainingOptions, 
             if preview is not None and (done % options.preview_every == 0 or last):
                 values["preview"] = preview_image(net, preview, rays, background)
             recent = float(np.mean(losses[-REPORT_EVERY:]))
-            yield Progress(iteration=done, total=options.iterations, loss=recent,
-                           message=f"PSNR {np.mean(psnrs[-REPORT_EVERY:]):.2f} dB, {elapsed:.1f} s",
-                           values=values)
+            try:
+                yield Progress(iteration=done, total=options.iterations, loss=recent,
+                               message=f"PSNR {np.mean(psnrs[-REPORT_EVERY:]):.2f} dB, {elapsed:.1f} s",
+                               values=values)
+            except Cancelled:  # the runner's Cancel: the network trained so far is the result
+                break
     return TrainingRun(net, np.asarray(losses), np.asarray(psnrs), elapsed,
                        float(config.samples + config.fine_samples))
 

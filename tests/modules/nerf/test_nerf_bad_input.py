@@ -116,8 +116,6 @@ def test_a_budget_too_small_for_one_step_is_refused_naming_the_control(session):
 
 
 @pytest.mark.parametrize("method", ["mlp", "grid"])
-@pytest.mark.xfail(strict=True, reason="the training loops do not yet stop on a thrown Cancelled: patch "
-                                       "/work/notes/patches/nerfapp-cancel-keeps-model-nerf.diff")
 def test_cancelling_training_keeps_the_model_trained_so_far(session, method):
     state = session.state
     controls = {**TINY, "method": method, "grid_resolution": 16, "iterations": 1000, "budget_seconds": 0.0}
@@ -133,9 +131,6 @@ def test_cancelling_training_keeps_the_model_trained_so_far(session, method):
     assert held_out.test_renders[0].pixels.shape == (100, 100, 3)
 
 
-@pytest.mark.xfail(strict=True, reason="Session._drive closes a cancelled generator instead of throwing "
-                                       "Cancelled in: patch /work/notes/patches/"
-                                       "nerfapp-cancel-keeps-model-core.diff (with the loops' -nerf.diff)")
 def test_cancel_in_a_session_keeps_the_model_and_says_so(session):
     fork = session.fork()
     seen = []
