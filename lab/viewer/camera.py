@@ -201,13 +201,16 @@ def aim(state: Mapping[str, Any],
         interactions: Iterable[Interaction] = ()) -> tuple[np.ndarray, np.ndarray] | None:
     """What to frame and which way to look: the content points ``(N, 3)`` (:func:`robust_points` of the
     state's values, the corners of its camera frustums' pictures, and the corners of each interaction's
-    :meth:`~Interaction.bounds`) and the
+    :meth:`~Interaction.bounds`; each frustum whole, apex included) and the
     viewing direction ``(3,)`` of :func:`viewpoint` over the state's values and the interactions' boxes; None
     when nothing is drawn in 3D."""
     interactions = list(interactions)
     boxes = [b for b in (i.bounds() for i in interactions) if b is not None and np.all(np.isfinite(b))]
     extent = scene_extent(state.values())  # what the frustums are drawn the size of
-    glyphs = [frustum_corners(v, extent) for v in state.values() if isinstance(v, Cameras)]
+    # each frustum whole: its picture's corners and its apex (the camera centre), never dropped as outliers
+    # (a NeRF scene's dense mesh outnumbers its cameras a thousand to one)
+    glyphs = [np.concatenate([frustum_corners(v, extent), v.centers]) for v in state.values()
+              if isinstance(v, Cameras)]
     points = np.concatenate([robust_points(state.values()), *glyphs, *(box_corners(b) for b in boxes)])
     if not len(points):
         return None

@@ -39,7 +39,8 @@ RUN_S = 300
 MIN_SHARE = 0.3
 #: Controls typed into long steps before Run all, as a user on a slow machine does (diffusion's defaults
 #: train 4000 iterations: minutes on 2 shared cores).
-QUICK = {"diffusion": {"train_denoiser": {"iterations": 300}, "sample": {"count": 200}}}
+QUICK = {"diffusion": {"train_denoiser": {"iterations": 300}, "sample": {"count": 200}},
+         "nerf": {"train_nerf": {"budget_seconds": 10}, "render_path": {"frames": 8}}}
 #: A long step that ran at least this long (s) must have shown its progress while its label read running.
 WATCHABLE_S = 2.0
 #: Slack (CSS px) for a projected box that touches the free canvas's edge.

@@ -26,9 +26,14 @@ from lab.viewer.interactions import Interaction
 CANVAS = Viewport(math.radians(75.0), DEFAULT_ASPECT)
 #: Lighter controls and dataset options where a module's defaults take long on a shared CPU (the drawing
 #: does not change kind).
-LIGHT = {"diffusion": {"train_denoiser": {"iterations": 150, "hidden": 32, "layers": 2, "batch_size": 128}}}
-OPTIONS = {"sfm": {"num_views": 8}}
-MODULES = ("calibration", "epipolar", "stereo", "sfm", "texture", "diffusion")
+LIGHT = {"diffusion": {"train_denoiser": {"iterations": 150, "hidden": 32, "layers": 2, "batch_size": 128}},
+         "nerf": {"fit_image_2d": {"side": 24, "iterations": 20},
+                  "train_nerf": {"method": "grid", "grid_resolution": 32, "iterations": 120,
+                                 "budget_seconds": 0.0},
+                  "render_path": {"frames": 4, "scale": 0.3},
+                  "extract_mesh": {"resolution": 32, "level": 2.0}}}
+OPTIONS = {"sfm": {"num_views": 8}, "nerf": {"train_views": 6, "test_views": 2}}
+MODULES = ("calibration", "epipolar", "stereo", "sfm", "texture", "diffusion", "nerf")
 
 
 def extent_on_canvas(points: np.ndarray, pose: CameraPose,
@@ -213,7 +218,8 @@ def test_the_frustum_pictures_are_framed_not_only_the_camera_centres():
     np.testing.assert_allclose(np.abs(corners[:, 1]), depth)  # tan(45 degrees) = 1
     np.testing.assert_allclose(np.abs(corners[:, 0]), depth * 4 / 3)
     points, _ = aim({"cameras": cameras}, [])
-    assert len(points) == 1 + 4
+    assert len(points) == 1 + 4 + 1  # the centre as a point, and the frustum whole: its picture and apex
+    np.testing.assert_allclose(points[5], cameras.centers[0])
 
 
 def test_content_that_outgrows_the_view_is_framed_again_while_the_camera_was_not_moved():
