@@ -77,13 +77,22 @@ def test_texture_growth_replay_pixel_inspection_quilt_blocks_and_mesh(
     assert {f"/explore/texture/efros_leung/{n}" for n in ("texture", "sample", "window",
                                                           "candidates", "chosen")} \
         <= set(nodes)
-    # the window's outline on the texture plane: 5 x 5 pixels around (row, col), pixel edges at +-0.5
-    scale = 2.0 / SIDE
+    # the window's outline on the texture plane: 5 x 5 pixels around (row, col), pixel edges at +-0.5; the
+    # growth row holds the texture and then the sample, one scale for both, the larger PLANE_SIDE across
+    from lab.viewer.interactions.texture import GROWTH_ROW_Y, PLANE_SIDE
+
+    sample_png = lab_api.value(session_id, "sample", "png")
+    sample_h, sample_w = cv2.imdecode(np.frombuffer(sample_png, np.uint8), cv2.IMREAD_COLOR).shape[:2]
+    scale = PLANE_SIDE / max(SIDE, sample_w, sample_h)
+    row_width = SIDE * scale + 0.15 * PLANE_SIDE + sample_w * scale
+    centre_x = -row_width / 2 + SIDE * scale / 2
     outline = view.node_points("/explore/texture/efros_leung/window")
     np.testing.assert_allclose([outline[:, 0].min(), outline[:, 0].max()],
-                               [plane_x(col - 2.5, SIDE, scale), plane_x(col + 2.5, SIDE, scale)], atol=1e-5)
+                               [plane_x(col - 2.5, SIDE, scale, centre_x),
+                                plane_x(col + 2.5, SIDE, scale, centre_x)], atol=1e-5)
     np.testing.assert_allclose([outline[:, 1].min(), outline[:, 1].max()],
-                               [plane_x(row - 2.5, SIDE, scale), plane_x(row + 2.5, SIDE, scale)], atol=1e-5)
+                               [plane_x(row - 2.5, SIDE, scale, GROWTH_ROW_Y),
+                                plane_x(row + 2.5, SIDE, scale, GROWTH_ROW_Y)], atol=1e-5)
     for label in ("window when filled", "candidates in the sample"):  # the panels in the Images tab
         page.get_by_text(label, exact=True).wait_for(timeout=TIMEOUT_MS)
     page.screenshot(path=str(OUTPUT / "e2e-texture-pixel.png"))
