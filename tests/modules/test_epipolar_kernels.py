@@ -18,7 +18,8 @@ import pytest
 from lab.core import open_session
 from lab.geometry.homogeneous import hartley_normalization
 from lab.modules.epipolar import (PIPELINE, RANSAC_REFERENCE, correspondences, design_matrix,
-                                  keypoint_locations, distance_from_best_line, distance_from_best_line_reference, eight_point,
+                                  keypoint_locations, distance_from_best_line,
+                                  distance_from_best_line_reference, eight_point,
                                   enforce_rank2, estimate_fundamental_ransac, fixed_samples,
                                   homographies_4point, homography_share, homography_share_reference,
                                   inlier_counts, inlier_counts_reference, inlier_mask, inlier_mask_reference,
