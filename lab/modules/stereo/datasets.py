@@ -57,24 +57,9 @@ def _downsample_disparity(disparity: np.ndarray, factor: int) -> np.ndarray:
     return np.where(count > 0, total / np.maximum(count, 1e-12) / factor, -1.0)
 
 
-def _downsampled_K(K: np.ndarray, factor: int) -> np.ndarray:
-    """The camera matrix of an image shrunk by ``factor`` (pixel centres stay at integers)."""
-    scaled = np.array(K, dtype=np.float64)
-    scaled[:2, :2] /= factor
-    scaled[:2, 2] = (scaled[:2, 2] + 0.5) / factor - 0.5
-    return scaled
-
-
-def _downsampled_calibration(calibration: StereoCalibration, factor: int) -> StereoCalibration:
-    if factor == 1:
-        return calibration
-    return StereoCalibration(_downsampled_K(calibration.K_left, factor), calibration.dist_left,
-                             _downsampled_K(calibration.K_right, factor), calibration.dist_right,
-                             calibration.R, calibration.T)
-
-
 def _scaled_calibration(calibration: StereoCalibration, scale: float) -> StereoCalibration:
-    """The calibration of a pair both of whose images were resized by ``scale`` (R and T unchanged)."""
+    """The calibration of a pair both of whose images were resized by ``scale`` (R and T unchanged; a
+    ``downsample`` by f is ``1 / f``)."""
     if scale == 1.0:
         return calibration
     return StereoCalibration(scale_intrinsics(calibration.K_left, scale), calibration.dist_left,
@@ -120,7 +105,7 @@ def motorcycle(*, downsample: Annotated[int, Range(1, 8)] = 1) -> Loaded:
     left = _downsample(left.astype(np.float32) / 255.0, factor).astype(np.float32)
     right = _downsample(right.astype(np.float32) / 255.0, factor).astype(np.float32)
     truth = _downsample_disparity(truth, factor)
-    calibration = _downsampled_calibration(_motorcycle_calibration(), factor)
+    calibration = _scaled_calibration(_motorcycle_calibration(), 1.0 / factor)
     depth = np.where(truth >= 0, calibration.K_left[0, 0] * calibration.baseline
                      / np.maximum(truth + MOTORCYCLE_DOFFS_PX / factor, 1e-9), 0.0)
     return Loaded(state={"left_raw": Image(left, name="motorcycle left"),
@@ -407,7 +392,7 @@ def folder(*, path: str, downsample: Annotated[int, Range(1, 8)] = 1,
                                              f"shrink {factor} times")
         left, right = (Image(_downsample(im.pixels, factor).astype(np.float32), name=im.name)
                        for im in (left, right))
-        calibration = _downsampled_calibration(calibration, factor)
+        calibration = _scaled_calibration(calibration, 1.0 / factor)
     truth: dict[str, Any] = {}
     disparity_path = _find(directory, DISPARITY_NAMES, (*IMAGE_SUFFIXES, ".pfm"))
     if disparity_path is not None:
