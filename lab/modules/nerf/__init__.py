@@ -76,7 +76,8 @@ from lab.modules.nerf.rendering import (PackedRendering, VolumeRendering, hierar
 from lab.modules.nerf.mesh import density_lattice, iso_surface, lattice_points, mesh_trimesh
 from lab.modules.nerf.path import mean_up, orbit_path
 from lab.modules.nerf.steps import (FieldRenderer, encode_positions, extract_mesh, fit_image_2d,
-                                    generate_rays, render_held_out, render_path, render_view, train_nerf)
+                                    generate_rays, render_held_out, render_path, render_view, train_nerf,
+                                    training_views)
 from lab.modules.nerf.values import EncodingConfig, FieldConfig, NerfCheckpoint, RayBundle, SceneBounds
 from lab.modules.nerf.warmup import CoordinateMLP, fit_image
 
@@ -112,6 +113,6 @@ __all__ = [
     "object_scene", "orbit_path", "pixel_centres", "positional_encoding", "positional_encoding_reference",
     "render_grid", "render_held_out", "render_image", "render_path", "render_rays", "render_view",
     "sample_pdf", "sample_pdf_reference", "scaled_cameras", "stratified_samples",
-    "stratified_samples_reference", "synthetic_object", "train_nerf", "volume_render", "volume_render_packed",
-    "volume_render_reference",
+    "stratified_samples_reference", "synthetic_object", "train_nerf", "training_views", "volume_render",
+    "volume_render_packed", "volume_render_reference",
 ]

@@ -48,21 +48,23 @@ MAX_BATCH_ACTIVATIONS = 2**27
 BACKGROUNDS = {"white": (1.0, 1.0, 1.0), "black": (0.0, 0.0, 0.0)}
 
 
-def _check_views(images: ImageSet, cameras: Cameras) -> np.ndarray:
-    """The training images as one float32 ``(V, H, W, 3)`` array, once they fit their cameras."""
+def training_views(images: ImageSet, cameras: Cameras) -> np.ndarray:
+    """The training images as one float32 ``(V, H, W, 3)`` array, once they fit their cameras (one camera
+    per view, of its size, colour); NeRF's and splatting's training read their views through it."""
     if not isinstance(images, ImageSet) or len(images) == 0:
         raise InvalidValue("images", "expected a non-empty ImageSet of training views")
     if not isinstance(cameras, Cameras):
         raise InvalidValue("cameras", f"expected Cameras, got {type(cameras).__name__}")
     if len(images) != len(cameras):
-        raise InvalidValue("images", f"{len(images)} images for {len(cameras)} cameras: one camera per view")
+        raise InvalidValue("images", f"{len(images)} images for {len(cameras)} cameras: one camera per "
+                                     "training view")
     for i, image in enumerate(images.images):
         if (image.width, image.height) != (cameras.width, cameras.height):
             raise InvalidValue("images", f"view {i} is {image.width}x{image.height} but the cameras are "
                                          f"{cameras.width}x{cameras.height}: every view must match its "
                                          "camera")
         if image.pixels.ndim != 3:
-            raise InvalidValue("images", f"view {i} is grey: NeRF learns colour images (H, W, 3)")
+            raise InvalidValue("images", f"view {i} is grey: a radiance field learns colour images (H, W, 3)")
     return np.stack([image.pixels for image in images.images])
 
 
@@ -92,7 +94,7 @@ def generate_rays(images: ImageSet, cameras: Cameras, bounds: SceneBounds, *,
     Args:
         lines: rays drawn in 3D.
     """
-    pixels = _check_views(images, cameras)
+    pixels = training_views(images, cameras)
     scene = as_bounds(bounds)
     origins, directions = cameras_rays(cameras)
     count = origins.shape[0] * origins.shape[1]
@@ -539,4 +541,4 @@ def extract_mesh(model: NerfCheckpoint | GridCheckpoint, *, resolution: Annotate
 __all__ = ["BACKGROUNDS", "MAX_BATCH_ACTIVATIONS", "MAX_BATCH_SAMPLES", "PREVIEW_SIDE", "EncodingResult",
            "FieldRenderer", "HeldOutResult", "ImageFitResult", "MeshResult", "PathResult", "RaysResult",
            "TrainResult", "ViewResult", "encode_positions", "extract_mesh", "fit_image_2d", "generate_rays",
-           "render_held_out", "render_path", "render_view", "train_nerf"]
+           "render_held_out", "render_path", "render_view", "train_nerf", "training_views"]

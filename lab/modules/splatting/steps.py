@@ -23,7 +23,7 @@ import torch
 
 from lab.core import (Cameras, Curve, GaussianSplats, Image, ImageSet, InvalidControl, InvalidValue, Progress,
                       Range, metric, step_result)
-from lab.modules.nerf import SceneBounds
+from lab.modules.nerf import SceneBounds, training_views
 from lab.modules.splatting.gaussians import view_of
 from lab.modules.splatting.rasterize import render
 from lab.modules.splatting.sh import C0, MAX_SH_DEGREE
@@ -113,18 +113,6 @@ class TrainResult:
     prunes: int = metric("Gaussians pruned by the density control")
 
 
-def _training_views(images: ImageSet, cameras: Cameras) -> np.ndarray:
-    if not isinstance(images, ImageSet) or len(images) == 0:
-        raise InvalidValue("images", "expected a non-empty ImageSet of training views")
-    if not isinstance(cameras, Cameras) or len(cameras) != len(images):
-        raise InvalidValue("cameras", "expected one camera per training view")
-    for i, image in enumerate(images.images):
-        if (image.width, image.height) != (cameras.width, cameras.height) or image.pixels.ndim != 3:
-            raise InvalidValue("images", f"view {i} must be an RGB image of its camera's size "
-                                         f"{cameras.width}x{cameras.height}")
-    return np.stack([image.pixels for image in images.images]).astype(np.float32)
-
-
 def train_splats(gaussians: SplatModel, images: ImageSet, cameras: Cameras, *,
                  iterations: Annotated[int, Range(1, 1000000)] = 3000,
                  budget_seconds: Annotated[float, Range(0.0, 36000.0)] = 60.0,
@@ -171,7 +159,7 @@ def train_splats(gaussians: SplatModel, images: ImageSet, cameras: Cameras, *,
         preview_every: iterations between two previews.
         background: the colour behind the Gaussians (white for object datasets).
     """
-    pixels = _training_views(images, cameras)
+    pixels = training_views(images, cameras).astype(np.float32)
     start = as_model(gaussians)
     initial = SplatModel(start.means, start.log_scales, start.quats, start.opacity_logits, start.sh,
                          sh_degree=start.sh_degree, background=np.asarray(BACKGROUNDS[background]))
