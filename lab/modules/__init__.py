@@ -14,7 +14,8 @@ from lab.core.errors import UnknownName
 from lab.core.pipeline import Pipeline
 
 #: Module names, in the order the landing page and the viewer list them.
-MODULES: tuple[str, ...] = ("calibration", "epipolar", "stereo", "sfm", "texture", "diffusion", "nerf")
+MODULES: tuple[str, ...] = ("calibration", "epipolar", "stereo", "sfm", "texture", "diffusion", "nerf",
+                            "splatting")
 
 
 @cache

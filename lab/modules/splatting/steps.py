@@ -1,11 +1,13 @@
 """The steps of the Gaussian splatting module, in pipeline order: each reads state by name and returns what
 it writes.
 
-1. :func:`initialize_gaussians`  random points in the scene box, scaled by their neighbours' distances
+1. :func:`initialize_gaussians`  at a reconstruction's points or random points in the scene box, scaled by
+                                 their neighbours' distances
 2. :func:`train_splats`          the Gaussians fitted to the training views (a generator step)
 3. :func:`render_held_out`       the held-out views rendered (evaluated: PSNR, SSIM, by the NeRF module's
                                  evaluation)
-4. :func:`render_view`           one held-out view
+4. :func:`render_view`           one held-out view, and the Gaussians one of its pixels is made of
+5. :func:`render_path`           novel views along an orbit (a generator step)
 
 Reference: B. Kerbl, G. Kopanas, T. Leimkühler, G. Drettakis, "3D Gaussian splatting for real-time
 radiance field rendering", SIGGRAPH 2023.
@@ -21,9 +23,10 @@ from typing import Annotated, Literal
 import numpy as np
 import torch
 
-from lab.core import (Cameras, Curve, GaussianSplats, Image, ImageSet, InvalidControl, InvalidValue, Progress,
-                      Range, metric, step_result)
-from lab.modules.nerf import SceneBounds, training_views
+from lab.core import (Cameras, Curve, GaussianSplats, Image, ImageSet, InvalidControl, InvalidValue,
+                      PointCloud, Progress, Range, metric, step_result)
+from lab.modules.nerf import SceneBounds, orbit_path, training_views
+from lab.modules.splatting.contributions import PixelContributions, pixel_contributions
 from lab.modules.splatting.gaussians import view_of
 from lab.modules.splatting.rasterize import render
 from lab.modules.splatting.sh import C0, MAX_SH_DEGREE
@@ -67,27 +70,50 @@ def initial_model(points: np.ndarray, colors: np.ndarray, *, opacity: float = 0.
                       np.full(n, math.log(opacity / (1 - opacity))), sh, sh_degree=0)
 
 
-def initialize_gaussians(bounds: SceneBounds, *, points: Annotated[int, Range(4, 200000)] = 1000,
+def initialize_gaussians(bounds: SceneBounds, sfm_points: PointCloud | None = None, *,
+                         source: Literal["auto", "random", "points"] = "auto",
+                         points: Annotated[int, Range(4, 200000)] = 1000,
                          opacity: Annotated[float, Range(0.001, 0.99)] = 0.1,
                          rng: np.random.Generator) -> InitResult:
-    """Gaussians at random points of the scene box (the paper's initialisation for its synthetic scenes,
-    section 7.1: 100k uniform points; the SfM points of a reconstruction come next), with random base
-    colours, scaled by their neighbours' distances (:func:`initial_model`). On a CPU fewer start better: a
-    training iteration costs what the Gaussians overlapping each pixel cost, and the density control adds
-    Gaussians where the views need them (measured on the synthetic object, 30 s of training: 1000 points
-    27.5 dB held-out after 668 iterations, 5000 points 13.4 dB after 69).
+    """The first Gaussians (Kerbl et al. 2023, section 5; the code's ``create_from_pcd``): at the points of
+    a reconstruction where the dataset brings them (``sfm_points``, the paper's start from COLMAP's sparse
+    points; at most ``points`` of them, drawn at random, in their colours), else at random points of the
+    scene box with random colours (the paper's start for its synthetic scenes, section 7.1: 100k uniform
+    points); each isotropic, scaled by its neighbours' distances (:func:`initial_model`). On a CPU fewer
+    start better: a training iteration costs what the Gaussians overlapping each pixel cost, and the density
+    control adds Gaussians where the views need them (measured on the synthetic object, 30 s of training:
+    1000 points 27.5 dB held-out after 668 iterations, 5000 points 13.4 dB after 69).
 
     The box is the cube of half-side ``bounds.radius`` about ``bounds.center``.
 
     Args:
-        points: Gaussians to start from.
+        source: "points" the dataset's points, "random" the box, "auto" the points where there are some.
+        points: Gaussians to start from (at most; fewer where the dataset has fewer points).
         opacity: their initial opacity.
     """
     if not isinstance(bounds, SceneBounds):
         raise InvalidValue("bounds", f"expected SceneBounds, got {type(bounds).__name__}")
-    xyz = bounds.center + bounds.radius * rng.uniform(-1.0, 1.0, (points, 3))
-    model = initial_model(xyz, rng.uniform(0.0, 1.0, (points, 3)), opacity=opacity)
+    if sfm_points is not None and not isinstance(sfm_points, PointCloud):
+        raise InvalidValue("sfm_points", f"expected a PointCloud, got {type(sfm_points).__name__}")
+    if source == "points" and sfm_points is None:
+        raise InvalidControl("source", "this dataset brings no points to start from: choose random or auto")
+    if source != "random" and sfm_points is not None:
+        xyz, colors = _drawn_points(sfm_points, points, rng)
+    else:
+        xyz = bounds.center + bounds.radius * rng.uniform(-1.0, 1.0, (points, 3))
+        colors = rng.uniform(0.0, 1.0, (points, 3))
+    model = initial_model(xyz, colors, opacity=opacity)
     return InitResult(model, model.splats(), len(model), float(np.exp(model.log_scales).mean()))
+
+
+def _drawn_points(cloud: PointCloud, most: int, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
+    """At most ``most`` of ``cloud``'s points (finite: a PointCloud is) drawn without replacement, with their
+    colours (grey where it has none)."""
+    keep = np.arange(len(cloud))
+    if len(cloud) > most:
+        keep = np.sort(rng.choice(len(cloud), most, replace=False))
+    colors = np.full((len(cloud), 3), 0.5) if cloud.colors is None else np.clip(cloud.colors, 0.0, 1.0)
+    return cloud.xyz[keep], colors[keep]
 
 
 # ----------------------------------------------------------------------------------------------------
@@ -217,17 +243,28 @@ class HeldOutResult:
     """Result of :func:`render_held_out`."""
 
     test_renders: ImageSet
+    held_out_cameras: Cameras
     render_seconds: float = metric("time to render every held-out view", unit="s")
 
 
 def render_held_out(model: SplatModel, test_cameras: Cameras, *, device: str = "cpu") -> HeldOutResult:
     """Render every held-out view with the fast rasterizer, for evaluation (PSNR and SSIM against the
-    truth, :func:`lab.modules.nerf.evaluate_held_out`)."""
+    truth, :func:`lab.modules.nerf.evaluate_held_out`). ``held_out_cameras`` are the held-out cameras
+    carrying their renders (a click on a pixel of one lists the Gaussians it is made of,
+    :func:`render_view`)."""
+    if not isinstance(test_cameras, Cameras) or len(test_cameras) == 0:
+        raise InvalidValue("test_cameras", "expected the held-out Cameras")
     started = time.perf_counter()
     renders = [render_model(model, test_cameras, i, device=device) for i in range(len(test_cameras))]
     seconds = time.perf_counter() - started
     images = ImageSet(tuple(Image(r, name=f"held-out {i}") for i, r in enumerate(renders)))
-    return HeldOutResult(images, seconds)
+    carrying = Cameras(test_cameras.K, test_cameras.R, test_cameras.t, test_cameras.width,
+                       test_cameras.height, dist=test_cameras.dist, image="test_renders")
+    return HeldOutResult(images, carrying, seconds)
+
+
+#: Most Gaussians of a pixel listed in its chart (front to back).
+PIXEL_LIST = 40
 
 
 @step_result
@@ -235,22 +272,98 @@ class ViewResult:
     """Result of :func:`render_view`."""
 
     rendered: Image
+    pixel_gaussians: Curve
+    pixel_splats: PointCloud
     render_seconds: float = metric("time to render the view", unit="s")
+    pixel_count: int = metric("Gaussians composited into the chosen pixel")
+    pixel_transmittance: float = metric("transmittance left for the background at the chosen pixel")
 
 
 def render_view(model: SplatModel, test_cameras: Cameras, *,
-                view: Annotated[int, Range(0, 1000)] = 0, device: str = "cpu") -> ViewResult:
-    """Render held-out camera ``view``.
+                view: Annotated[int, Range(0, 1000)] = 0, pixel_u: Annotated[int, Range(-1, 10000)] = -1,
+                pixel_v: Annotated[int, Range(-1, 10000)] = -1, device: str = "cpu") -> ViewResult:
+    """Render held-out camera ``view``, and list the Gaussians pixel ``(pixel_u, pixel_v)`` is made of
+    (:func:`~.contributions.pixel_contributions`): front to back, each one's alpha, the transmittance
+    ``T_i`` it meets and its weight ``w_i = alpha_i T_i`` (eq. 3; the first :data:`PIXEL_LIST` charted),
+    their centres drawn in 3D (``pixel_splats``). A click on a held-out view's pixel runs this step for it.
 
     Args:
         view: the held-out camera.
+        pixel_u: column of the pixel whose Gaussians are listed (-1: the centre column).
+        pixel_v: row of that pixel (-1: the centre row).
     """
+    model = as_model(model, "model")
     if not 0 <= view < len(test_cameras):
         raise InvalidControl("view", f"must be in [0, {len(test_cameras) - 1}], got {view}")
+    u = test_cameras.width // 2 if pixel_u < 0 else pixel_u
+    v = test_cameras.height // 2 if pixel_v < 0 else pixel_v
     started = time.perf_counter()
     image = render_model(model, test_cameras, view, device=device)
-    return ViewResult(Image(image, name=f"held-out view {view}"), time.perf_counter() - started)
+    seconds = time.perf_counter() - started
+    found = pixel_contributions(model, test_cameras, view, u, v)
+    return ViewResult(Image(image, name=f"held-out view {view}"), _pixel_chart(found),
+                      PointCloud(model.means[found.ids].astype(np.float64)), seconds, len(found),
+                      found.remaining)
 
 
-__all__ = ["BACKGROUNDS", "HeldOutResult", "InitResult", "TrainResult", "ViewResult", "initial_model",
-           "initialize_gaussians", "render_held_out", "render_model", "render_view", "train_splats"]
+def _pixel_chart(found: PixelContributions) -> Curve:
+    """Bars of alpha, transmittance and weight per Gaussian of a pixel, front to back (one empty bar where
+    no Gaussian covers it)."""
+    shown = min(len(found), PIXEL_LIST)
+    title = f"Gaussians of pixel ({found.u}, {found.v}), front to back"
+    if shown == 0:
+        return Curve(np.zeros(1), np.zeros((3, 1)), kind="bar", title=f"no Gaussian covers pixel ({found.u}, "
+                     f"{found.v}): the background", xlabel="Gaussian", ylabel="",
+                     labels=("alpha", "T before", "weight"), categories=("none",))
+    if shown < len(found):
+        title += f" (the first {shown} of {len(found)})"
+    return Curve(np.arange(shown, dtype=np.float64),
+                 np.stack([found.alphas[:shown], found.before[:shown], found.weights[:shown]]), kind="bar",
+                 title=title, xlabel="Gaussian (index in the model)", ylabel="",
+                 labels=("alpha", "T before", "weight alpha T"),
+                 categories=tuple(f"#{i}" for i in found.ids[:shown]))
+
+
+# ----------------------------------------------------------------------------------------------------
+# 5. Novel views along a path
+# ----------------------------------------------------------------------------------------------------
+@step_result
+class PathResult:
+    """Result of :func:`render_path`."""
+
+    path_frames: ImageSet
+    path_cameras: Cameras
+    render_seconds: float = metric("time to render every frame", unit="s")
+
+
+def render_path(model: SplatModel, cameras: Cameras, bounds: SceneBounds, *,
+                frames: Annotated[int, Range(2, 360)] = 24, scale: Annotated[float, Range(0.05, 4.0)] = 1.0,
+                device: str = "cpu") -> Generator[Progress, None, PathResult]:
+    """Novel views along an orbit about the scene centre at the training cameras' mean height and distance
+    (the NeRF module's :func:`~lab.modules.nerf.orbit_path`, so both modules fly the same path), rendered
+    by the fast rasterizer at ``scale`` times the training resolution. ``path_cameras`` carry their frames;
+    the frames are exported as an animated GIF (``vision-lab export splatting --format gif``). Yields each
+    frame as it is rendered.
+
+    Args:
+        frames: views along the full turn.
+        scale: their resolution as a fraction of the training cameras'.
+    """
+    model = as_model(model, "model")
+    if not isinstance(cameras, Cameras) or len(cameras) == 0:
+        raise InvalidValue("cameras", "expected the training Cameras (the orbit follows their height)")
+    path = orbit_path(cameras, bounds.center, frames, scale=scale)
+    rendered: list[Image] = []
+    started = time.perf_counter()
+    for i in range(frames):
+        rendered.append(Image(render_model(model, path, i, device=device), name=f"frame {i}"))
+        yield Progress(iteration=i + 1, total=frames, message=f"frame {i + 1} of {frames}",
+                       values={"frame": rendered[-1]})
+    seconds = time.perf_counter() - started
+    carrying = Cameras(path.K, path.R, path.t, path.width, path.height, image="path_frames")
+    return PathResult(ImageSet(tuple(rendered)), carrying, seconds)
+
+
+__all__ = ["BACKGROUNDS", "PIXEL_LIST", "HeldOutResult", "InitResult", "PathResult", "TrainResult",
+           "ViewResult", "initial_model", "initialize_gaussians", "render_held_out", "render_model",
+           "render_path", "render_view", "train_splats"]

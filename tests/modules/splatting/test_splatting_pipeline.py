@@ -1,4 +1,4 @@
-"""lab.modules.splatting through its PIPELINE (not yet in lab.modules.MODULES): initialisation, a tiny
+"""lab.modules.splatting through its PIPELINE: initialisation, a tiny
 training run that lowers the loss and runs the density control, held-out evaluation by the NeRF module's
 evaluation, the PLY interchange against plyfile, the density control's bookkeeping, D-SSIM, and the errors
 that name the problem. Everything is tiny (3 views of 100 px, a few hundred Gaussians, tens of
@@ -51,12 +51,13 @@ def random_model(n: int = 20, seed: int = 0) -> S.SplatModel:
 def test_pipeline_steps_in_order():
     assert PIPELINE.name == "splatting"
     assert [s.name for s in PIPELINE.steps] == ["initialize_gaussians", "train_splats", "render_held_out",
-                                                "render_view"]
-    assert PIPELINE.step("train_splats").is_generator
-    assert [d.name for d in PIPELINE.datasets] == ["synthetic_object", "nerf_synthetic"]
+                                                "render_view", "render_path"]
+    assert PIPELINE.step("train_splats").is_generator and PIPELINE.step("render_path").is_generator
+    assert [d.name for d in PIPELINE.datasets] == ["synthetic_object", "object_with_points", "nerf_synthetic"]
     written = {name for spec in PIPELINE.steps for name in spec.writes}
     assert PIPELINE.views <= written | {"images", "cameras", "test_cameras", "bounds"}
-    assert set(PIPELINE.export("ply").reads) <= written
+    assert {"ply", "gif"} <= set(PIPELINE.exports)
+    assert set(PIPELINE.export("ply").reads) | set(PIPELINE.export("gif").reads) <= written
 
 
 def test_initial_gaussians_fill_the_scene_box(session):
