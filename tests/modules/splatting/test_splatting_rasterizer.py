@@ -226,3 +226,53 @@ def test_too_many_tile_pairs_are_refused_by_name(monkeypatch):
     monkeypatch.setattr(RZ, "MAX_TILE_PAIRS", 5)
     with pytest.raises(CapacityExceeded, match="Gaussian, tile"):
         RZ.bin_gaussians(np.array([[0, 0, 3, 2]]), np.ones(1), width=48, height=32, tile_size=16)
+
+
+def test_row_span_holds_every_pixel_of_the_ellipse_and_little_more():
+    """The chord of each row (widened to whole pixels) holds every pixel inside the ellipse, and at most one
+    pixel more on each side; a conic that is not positive definite keeps the whole row."""
+    from lab.modules.splatting._kernels import _row_span
+
+    rng = np.random.default_rng(0)
+    px = np.arange(-40, 80)
+    for _ in range(300):
+        mx, my = rng.uniform(-20, 60, 2)
+        L = rng.normal(size=(2, 2)) * rng.uniform(0.05, 1.0)
+        ca, cb, cc = (L @ L.T + 1e-3 * np.eye(2))[[0, 0, 1], [0, 1, 1]]
+        limit = rng.uniform(0.0, 12.0)
+        for py in range(-5, 45, 3):
+            dx, dy = mx - px, my - py
+            inside = px[ca * dx * dx + 2 * cb * dx * dy + cc * dy * dy <= limit]
+            first, stop = _row_span(mx, my, ca, cb, cc, limit, py, -40, 80)
+            if len(inside):
+                assert first <= inside.min() and inside.max() < stop
+                assert first >= inside.min() - 1 and stop <= inside.max() + 2
+            else:
+                assert stop - first <= 2
+    assert _row_span(3.0, 3.0, 1.0, 2.0, 1.0, 4.0, 3, 0, 16) == (0, 16)      # not positive definite
+    first, stop = _row_span(3.0, 3.0, 1.0, 0.0, 1.0, 4.0, 9, 0, 16)     # a row the circle misses
+    assert stop <= first
+
+
+def test_a_thin_diagonal_gaussian_leaves_the_tiles_its_square_touches_but_its_ellipse_misses():
+    """A long thin Gaussian along the image diagonal: its 3-sigma square covers every 8 px tile, its ellipse
+    only those near the diagonal. The fast path (which walks only the ellipse's chords) draws and
+    differentiates exactly what the reference (every pixel of every listed tile) does, and the off-diagonal
+    corner tiles, though listed, stay background."""
+    view = G.View(torch.eye(3, dtype=F64), torch.zeros(3, dtype=F64), 30.0, 30.0, 15.5, 15.5, 32, 32)
+    quats = torch.tensor([[math.cos(math.pi / 8), 0.0, 0.0, math.sin(math.pi / 8)],
+                          [1.0, 0.0, 0.0, 0.0]], dtype=F64)              # 45 degrees about the view axis
+    scene = {"means": torch.tensor([[0.0, 0.0, 2.0], [0.3, -0.3, 2.5]], dtype=F64),
+             "log_scales": torch.log(torch.tensor([[0.9, 0.02, 0.05], [0.03, 0.03, 0.03]], dtype=F64)),
+             "quats": quats, "opacity_logits": torch.tensor([3.0, 1.0], dtype=F64),
+             "sh": 0.3 * torch.randn(2, 16, 3, generator=torch.Generator().manual_seed(2), dtype=F64)}
+    background = torch.tensor([0.2, 0.4, 0.6], dtype=F64)
+    projected = G.project(scene["means"], scene["log_scales"], scene["quats"], view, tile_size=8)
+    assert projected.rects[0].tolist() == [0, 0, 4, 4]                 # the square lists all 16 tiles
+    (fast_image, fast_grads), (slow_image, slow_grads) = both(scene, view, background, degree=2,
+                                                              tile_size=8)
+    assert (fast_image - slow_image).abs().max() <= 1e-5
+    assert_close_gradients(fast_grads, slow_grads)
+    drawn = (fast_image - background).abs().amax(dim=-1) > 0
+    assert all(drawn[i, i] for i in range(32))                           # along the diagonal
+    assert not drawn[0:8, 24:32].any() and not drawn[24:32, 0:8].any()   # listed corner tiles untouched
