@@ -70,6 +70,8 @@ def lesson_summary(lesson: Lesson) -> str:
 
 #: What a task step reads when the student's code failed in it (and its outputs are not there).
 FAILED = "failed"
+#: What the label of a task step whose student code failed adds after :data:`FAILED`.
+FAILED_NOTE = "your code failed"
 
 
 def failure_banner(task: Task, reason: str) -> str:
@@ -552,6 +554,11 @@ class LessonMode:
         failed on its last run and whose outputs are not there (for a view that labels its steps)."""
         return FAILED if step in self.failed and status not in ("done", "stale", "running") else status
 
+    def failure_note(self, step: str) -> str:
+        """What a failed label of ``step`` adds: "your code failed" for a task step whose student code failed
+        on its last run, else nothing."""
+        return FAILED_NOTE if step in self.failed else ""
+
     def _failed(self, task: Task, reason: str) -> None:
         """The student's code failed in ``task``'s step: say so where it is seen with the step folded."""
         with self.ctx.lock:
@@ -590,7 +597,8 @@ class LessonMode:
             if self.status_of(step, session.step_status().get(step, "ready")) != FAILED:
                 return
             names = [spec.name for spec in session.pipeline.steps]
-            folder.label = step_label(names.index(step), session.pipeline.step(step), FAILED)
+            folder.label = step_label(names.index(step), session.pipeline.step(step), FAILED,
+                                      why=self.failure_note(step))
 
     # --- comparing -------------------------------------------------------------------------------
     def compare(self, step: str) -> None:

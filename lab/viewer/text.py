@@ -98,11 +98,12 @@ def history_markdown(history: Sequence[RunRecord], limit: int = 12) -> str:
     return "\n".join(["| # | step | status | seconds |", "|---|---|---|---|", *rows[::-1]])
 
 
-def step_label(index: int, spec: StepSpec, status: str) -> str:
-    """The label of a step's folder: its number, title, status mark and status
-    (``2. Mean intensity ✓ done``; in lesson mode ``2. Homographies ✗ failed: your code failed``)."""
+def step_label(index: int, spec: StepSpec, status: str, *, why: str = "") -> str:
+    """The label of a step's folder: its number, title, status mark and status, and for a failed step
+    ``why`` (``2. Mean intensity ✓ done``; ``8. Extract mesh ✗ failed: see the error at the top``; in
+    lesson mode ``2. Homographies ✗ failed: your code failed``)."""
     label = f"{index + 1}. {spec.title} {STATUS_MARK.get(status, '')} {status}"
-    return label + (": your code failed" if status == "failed" else "")  # lesson mode: a student's step
+    return label + (f": {why}" if status == "failed" and why else "")
 
 
 def stale_note(spec: StepSpec, ran_with: Mapping[str, Any] | None, shown: Mapping[str, Any] | None) -> str:

@@ -78,6 +78,8 @@ class ClientView:
         self._syncing = False  # the code is setting widgets (their callbacks must not mark anything stale)
         self._marked: str | None = None  # the step labelled "running"
         self._marked_status = "running"  # its label (the runner's: "running", or the compiling notice)
+        self._failed: set[str] = set()  # steps whose last run failed (labelled so until they run or reset)
+        self._history_read = 0  # how many of the session's history records _note_runs has read
         self._step_handles: list[Any] = []
         self._dataset_option_handles: dict[str, Any] = {}
         #: The module's special interactions for the session shown (:mod:`lab.viewer.interactions`).
@@ -227,6 +229,7 @@ class ClientView:
             self.drawer.canvas.views.clear()
             self.camera.reset()
             self._seen, self._drawn = None, {}
+            self._failed, self._history_read = set(), 0
             self.tab.session_id_text.value = session.id
             dropdown = self.tab.module_dropdown
             if session.pipeline.name not in dropdown.options:  # opened by id, not offered here
@@ -431,9 +434,13 @@ class ClientView:
                 if row is None:
                     continue
                 label = self._marked_status if spec.name == self._marked else status[spec.name]
+                if spec.name in self._failed and label in ("ready", "blocked"):
+                    label = "failed"  # its last run failed: the error box (top of the panel) says why
+                why = "see the error at the top" if label == "failed" else ""
                 if self.lesson_mode is not None:  # a student's failed step stays failed until it works
                     label = self.lesson_mode.status_of(spec.name, label)
-                row.folder.label = step_label(index, spec, label)
+                    why = self.lesson_mode.failure_note(spec.name) or why
+                row.folder.label = step_label(index, spec, label, why=why)
                 stale = status[spec.name] == "stale"
                 row.note.content = stale_note(spec, session.ran_with.get(spec.name), shown.get(spec.name)) \
                     if stale else ""
@@ -505,6 +512,8 @@ class ClientView:
         session = self.require_session()
         self.clear_error()
         session.reset(step)
+        spec = session.pipeline.step(step)
+        self._failed -= {step, *(s.name for s in session.pipeline.downstream(spec.writes))}
         self.refresh(force=True)
 
     def cancel(self) -> None:
@@ -557,6 +566,7 @@ class ClientView:
             # Copies: a step running in another thread (REST) may change these meanwhile; dict()
             # and list() copy in one go under the GIL, iterating the originals would not.
             state, metrics, history = dict(session.state), dict(session.metrics), list(session.history)
+            self._note_runs(history)
             self._sync_widgets(session)
             self.refresh_status()
             self._show_metrics(session, metrics, history)
@@ -574,6 +584,16 @@ class ClientView:
                                                if r is not None)
             self.camera.frame(state, self.interactions)
             self.scene_panel.show(drawn, _producers(session, drawn), self.interactions)
+
+    def _note_runs(self, history: Sequence[RunRecord]) -> None:
+        """Read the history records added since the last look: a step whose run failed is labelled failed
+        (:meth:`refresh_status`) until a run of it ends otherwise or it is reset."""
+        for record in history[self._history_read:]:
+            if record.status == "failed":
+                self._failed.add(record.step)
+            else:
+                self._failed.discard(record.step)
+        self._history_read = len(history)
 
     def _pixel_clicked(self, image_name: str, view: int, pixel: np.ndarray) -> bool:
         """A click on a frustum's picture: the first interaction that takes the pixel gets it."""

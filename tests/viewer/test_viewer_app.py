@@ -206,6 +206,35 @@ def test_a_step_that_fails_is_shown_with_its_reason(server, store):
     assert "failed" in view.rows["explode"].metrics.content
 
 
+def test_a_failed_step_reads_failed_until_it_runs_or_is_reset(server, store):
+    def fragile(images: ImageSet, *, works: bool = False) -> Annotated[np.ndarray, "piece"]:
+        """Fails unless told it works."""
+        if not works:
+            raise RuntimeError("the density never crosses the level")
+        return np.zeros(3)
+
+    pipeline = Pipeline.build(name="fragile", title="Fragile", summary="", steps=[fragile], datasets=[blank])
+    view = make_view(server, store, {"fragile": pipeline})
+    view.start({})
+    row = view.rows["fragile"]
+    assert row.folder.label == "1. Fragile › ready"
+    view.run_all()  # Run all stops at the failure: the step says so, not "ready", even folded
+    assert row.folder.label == "1. Fragile ✗ failed: see the error at the top"
+    assert "the density never crosses" in view.tab.error_box.content
+    row.controls["works"].value = True  # a changed control does not hide the failure
+    assert row.folder.label.endswith("✗ failed: see the error at the top")
+    view.press("fragile", "Reset")
+    assert row.folder.label == "1. Fragile › ready"
+    row.controls["works"].value = False
+    with pytest.raises(Exception, match="density"):
+        view.session.run("fragile")  # over REST, behind the viewer's back
+    view.poll()
+    assert row.folder.label.endswith("✗ failed: see the error at the top")
+    row.controls["works"].value = True
+    view.press("fragile", "Run")
+    assert row.folder.label == "1. Fragile ✓ done" and not view.tab.error_box.visible
+
+
 def test_changes_made_over_rest_are_redrawn_on_poll(server, store, view):
     session = view.session
     session.run("add_noise", {"sigma": 0.2})  # what a REST call does, behind the viewer's back
