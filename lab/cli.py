@@ -1,6 +1,6 @@
 """The ``vision-lab`` command: serve the lab, list modules, run a pipeline headless, export values.
 
-    vision-lab serve [--host 127.0.0.1] [--port 8000] [--viewer-port 8080] [--no-warmup]
+    vision-lab serve [--host 127.0.0.1] [--port 8000] [--viewer-port 8080] [--no-warmup] [--workers N]
     vision-lab modules [--json]
     vision-lab run MODULE [--dataset NAME|PATH] [--option KEY=VALUE]... [--set STEP.CONTROL=VALUE]...
                           [--until STEP] [--seed N] [--json]
@@ -36,6 +36,7 @@ if TYPE_CHECKING:  # the CLI imports the core lazily: `vision-lab --help` stays 
     # the type checker only; at run time they are found through the public typer.BadParameter.
     from typer._click.exceptions import ClickException, UsageError
 
+    from lab.api.workers import WorkerIdentity
     from lab.core.pipeline import Pipeline, Plan, RunRecord, Session
     from lab.core.step import Control, Progress
 
@@ -343,6 +344,20 @@ def serve(
         "--no-warmup", help="Do not compile the fast kernels in the background at start-up (also: "
                             "VISION_LAB_NO_WARMUP=1); a module's first RANSAC, SGM or Efros-Leung step then "
                             "compiles them, about 20 s on a fresh install.")] = False,
+    workers: Annotated[int, typer.Option(
+        min=1, max=64, help="Start this many worker processes on one database, on consecutive ports (the API "
+                            "on PORT, PORT+1, ..., the viewers on VIEWER_PORT, VIEWER_PORT+1, ...), for a "
+                            "proxy in front (README 'Behind a proxy'); a worker that dies is restarted."
+                            )] = 1,
+    worker_id: Annotated[str | None, typer.Option(
+        help="This process's id among several behind a proxy (like w1): its sessions' ids start with it "
+             "and a request for another worker's session is answered 421 (set by --workers).")] = None,
+    peers: Annotated[str | None, typer.Option(
+        help="The other workers' addresses, WORKER=URL,... (named in a 421 answer; set by --workers)."
+        )] = None,
+    no_grading: Annotated[bool, typer.Option(
+        "--no-grading", help="Store submissions and read them back, but leave grading to the one process on "
+                             "the same database that grades (with --workers: every worker but w0).")] = False,
 ) -> None:
     """Start the landing page, the REST API and the 3D viewer (Ctrl-C stops them).
 
@@ -351,16 +366,54 @@ def serve(
     ``--unsafe-sandbox`` is given.
     """
     with _user_errors():
+        if data_root is not None and not data_root.is_dir():
+            raise InvalidValue("--data-root", f"{str(data_root)!r} is not a folder")
+        if workers > 1:
+            _serve_workers(workers, host=host, port=port, viewer_port=viewer_port, data_root=data_root,
+                           unsafe_sandbox=unsafe_sandbox, no_warmup=no_warmup,
+                           given=worker_id is not None or peers is not None or no_grading)
+            return
         if unsafe_sandbox:
             from lab.lessons.isolation import allow_unsafe
 
             allow_unsafe(True)
-        if data_root is not None and not data_root.is_dir():
-            raise InvalidValue("--data-root", f"{str(data_root)!r} is not a folder")
         from lab.server import serve as start_server
 
         start_server(host=host, port=port, viewer_port=viewer_port,
-                     data_root=str(data_root) if data_root is not None else None, warmup=not no_warmup)
+                     data_root=str(data_root) if data_root is not None else None, warmup=not no_warmup,
+                     worker=_worker_identity(worker_id, peers), grading=not no_grading)
+
+
+def _worker_identity(worker_id: str | None, peers: str | None) -> "WorkerIdentity | None":
+    from lab.api.workers import WorkerIdentity, check_worker_id, parse_peers
+
+    if worker_id is None:
+        if peers is not None:
+            raise InvalidValue("--peers", "give --worker-id too: the peers are named for this worker")
+        return None
+    try:
+        return WorkerIdentity(check_worker_id(worker_id), parse_peers(peers or ""))
+    except ValueError as exc:
+        raise InvalidValue("--peers" if peers and "peers" in str(exc) else "--worker-id", str(exc)) from None
+
+
+def _serve_workers(workers: int, *, host: str, port: int, viewer_port: int, data_root: Path | None,
+                   unsafe_sandbox: bool, no_warmup: bool, given: bool) -> None:
+    """``serve --workers N``: start and watch the N worker processes (:func:`lab.server.serve_workers`)."""
+    from lab.server import plan_workers, serve_workers
+
+    if given:
+        raise InvalidValue("--workers", "--worker-id, --peers and --no-grading are set per worker by "
+                                        "--workers; give them only to a single worker")
+    extra = [*(["--data-root", str(data_root)] if data_root is not None else []),
+             *(["--unsafe-sandbox"] if unsafe_sandbox else []), *(["--no-warmup"] if no_warmup else [])]
+    try:
+        plans = plan_workers(workers, host=host, port=port, viewer_port=viewer_port, extra_args=extra)
+    except ValueError as exc:
+        raise InvalidValue("--workers", str(exc)) from None
+    code = serve_workers(plans)
+    if code:
+        raise typer.Exit(code)
 
 
 @app.command()

@@ -15,9 +15,14 @@ does not pause to compile; ``warmup=False`` or ``VISION_LAB_NO_WARMUP=1`` skips 
 
 from __future__ import annotations
 
+import contextlib
 import logging
 import os
+import signal
+import subprocess
+import sys
 import threading
+import time
 from collections.abc import Callable, Iterable, Mapping
 from dataclasses import dataclass
 from typing import TYPE_CHECKING
@@ -26,9 +31,10 @@ from lab.core import kernels
 from lab.core.pipeline import Pipeline
 from lab.core.store import SessionStore
 
-if TYPE_CHECKING:  # both are imported when the lab starts, not when this module is imported
+if TYPE_CHECKING:  # these are imported when the lab starts, not when this module is imported
     import uvicorn
 
+    from lab.api.workers import WorkerIdentity
     from lab.viewer.app import ViewerApp
 
 log = logging.getLogger("lab.server")
@@ -59,7 +65,8 @@ def _display_host(host: str) -> str:
 
 def _build(host: str, port: int, viewer_port: int, store: SessionStore | None,
            modules: Mapping[str, Pipeline] | Iterable[Pipeline] | None, log_level: str,
-           data_root: str | None) -> tuple[SessionStore, ViewerApp, str, uvicorn.Server]:
+           data_root: str | None, worker: WorkerIdentity | None = None,
+           grading: bool = True) -> tuple[SessionStore, ViewerApp, str, uvicorn.Server]:
     import uvicorn
 
     from lab.api.app import create_app
@@ -78,11 +85,11 @@ def _build(host: str, port: int, viewer_port: int, store: SessionStore | None,
         # wildcard address the landing page resolves ":PORT" against the host the browser used.
         viewer_url = f":{viewer.port}" if host in ("0.0.0.0", "::", "") else viewer.url
         if modules is None:
-            app = create_app(store, viewer_url=viewer_url)
+            app = create_app(store, viewer_url=viewer_url, worker=worker, grading=grading)
         else:
             pipelines = dict(modules) if isinstance(modules, Mapping) else {p.name: p for p in modules}
             app = create_app(store, modules=pipelines.__getitem__, module_names=list(pipelines),
-                             viewer_url=viewer_url)
+                             viewer_url=viewer_url, worker=worker, grading=grading)
         config = uvicorn.Config(app, host=host, port=port, log_level=log_level)
         api_server = uvicorn.Server(config)
     except BaseException:
@@ -136,21 +143,25 @@ def start_kernel_warmup(names: Iterable[str], *, enabled: bool = True,
 def serve(*, host: str = "127.0.0.1", port: int = 8000, viewer_port: int = 8080,
           store: SessionStore | None = None,
           modules: Mapping[str, Pipeline] | Iterable[Pipeline] | None = None, log_level: str = "info",
-          data_root: str | None = None, warmup: bool = True) -> None:
+          data_root: str | None = None, warmup: bool = True, worker: WorkerIdentity | None = None,
+          grading: bool = True) -> None:
     """Serve the landing page and REST API on ``port`` and the viewer on ``viewer_port``; blocks
     until interrupted (Ctrl-C / SIGTERM), then stops both.
 
     ``store`` (default: a new one) is shared by both; ``modules`` restricts what is offered
     (default: every registered module); ``data_root`` limits the folders datasets may read
     (:class:`~lab.core.SessionStore`); ``warmup`` compiles the kernels in the background
-    (:func:`start_kernel_warmup`).
+    (:func:`start_kernel_warmup`). ``worker`` and ``grading``: this process as one of several on one
+    database (:func:`lab.api.app.create_app`; :func:`serve_workers` starts them).
     """
     store, viewer, _viewer_url, api_server = _build(host, port, viewer_port, store, modules, log_level,
-                                                    data_root)
+                                                    data_root, worker, grading)
     start_kernel_warmup(_served_names(modules), enabled=warmup)
-    print(f"Vision Lab: landing page and REST API on http://{_display_host(host)}:{port} "
+    name = f" worker {worker.id}" if worker is not None else ""
+    print(f"Vision Lab{name}: landing page and REST API on http://{_display_host(host)}:{port} "
           f"(OpenAPI at /docs), 3D viewer on {viewer.url}", flush=True)
-    print(f"Grading: {sandbox_status()}", flush=True)
+    print(f"Grading: {sandbox_status() if grading else 'by another process on the same database'}",
+          flush=True)
     try:
         api_server.run()  # uvicorn handles SIGINT / SIGTERM: it shuts down and re-raises the signal
     except KeyboardInterrupt:
@@ -180,8 +191,6 @@ def start(*, host: str = "127.0.0.1", port: int = 8000, viewer_port: int = 8080,
           timeout: float = 30.0, data_root: str | None = None) -> RunningLab:
     """Start the lab in background threads and return once both servers accept connections
     (for notebooks and tests); call ``.stop()`` on the result."""
-    import time
-
     store, viewer, _viewer_url, api_server = _build(host, port, viewer_port, store, modules, log_level,
                                                     data_root)
     thread = threading.Thread(target=api_server.run, name="lab-api", daemon=True)
@@ -196,4 +205,110 @@ def start(*, host: str = "127.0.0.1", port: int = 8000, viewer_port: int = 8080,
     return RunningLab(store, viewer, api_server, thread, f"http://{_display_host(host)}:{port}", viewer.url)
 
 
-__all__ = ["NO_WARMUP_ENV", "RunningLab", "serve", "start", "start_kernel_warmup"]
+# --- several worker processes on one database (issue 20 item 3; lab.api.workers) -----------------------
+#: Times one worker may exit unasked within :data:`RESTART_WINDOW_S` and be started again; one more and
+#: :func:`serve_workers` stops them all (a port taken, a broken install: restarting will not help).
+MAX_RESTARTS = 3
+RESTART_WINDOW_S = 60.0
+
+
+@dataclass(frozen=True)
+class WorkerPlan:
+    """One worker process of :func:`serve_workers`: its id, ports and command line."""
+
+    id: str
+    port: int
+    viewer_port: int
+    command: tuple[str, ...]
+
+
+def plan_workers(workers: int, *, host: str = "127.0.0.1", port: int = 8000, viewer_port: int = 8080,
+                 extra_args: Iterable[str] = ()) -> list[WorkerPlan]:
+    """The command lines of ``workers`` processes ``w0`` .. ``wN-1``: worker ``wI`` serves its API on
+    ``port + I`` and its viewer on ``viewer_port + I``, knows the others' addresses (``--peers``), and only
+    ``w0`` grades (the others get ``--no-grading``). ``extra_args`` go to every one."""
+    if workers < 1:
+        raise ValueError(f"--workers must be at least 1, got {workers}")
+    last_api, last_viewer = port + workers - 1, viewer_port + workers - 1
+    if max(last_api, last_viewer) > 65535:
+        raise ValueError(f"{workers} workers need ports up to {max(last_api, last_viewer)}, above 65535")
+    if port <= last_viewer and viewer_port <= last_api:
+        raise ValueError(f"the API ports {port}-{last_api} and the viewer ports {viewer_port}-{last_viewer} "
+                         "overlap; choose --port and --viewer-port further apart")
+    peers = ",".join(f"w{i}=http://{_display_host(host)}:{port + i}" for i in range(workers))
+    extra = tuple(extra_args)
+    return [WorkerPlan(f"w{i}", port + i, viewer_port + i, (
+        sys.executable, "-m", "lab", "serve", "--host", host, "--port", str(port + i),
+        "--viewer-port", str(viewer_port + i), "--worker-id", f"w{i}", "--peers", peers,
+        *(("--no-grading",) if i else ()), *extra)) for i in range(workers)]
+
+
+def _end_with_parent() -> None:  # pragma: no cover - runs in the child between fork and exec
+    """A worker gets SIGTERM when its supervisor dies, even by SIGKILL (Linux ``PR_SET_PDEATHSIG``)."""
+    import ctypes
+
+    with contextlib.suppress(OSError, AttributeError):
+        ctypes.CDLL(None, use_errno=True).prctl(1, signal.SIGTERM)
+
+
+def serve_workers(plans: list[WorkerPlan], *, stop: threading.Event | None = None,
+                  poll_s: float = 0.5) -> int:
+    """Run the worker processes of ``plans`` until ``stop`` is set, SIGTERM or Ctrl-C; returns the exit code.
+
+    A worker that exits unasked is started again (so a killed ``w0`` comes back and requeues the gradings
+    it was running: none is lost), at most :data:`MAX_RESTARTS` times in :data:`RESTART_WINDOW_S`;
+    beyond that every worker is stopped and the code is 1. Stopping sends SIGTERM to each (uvicorn shuts
+    down cleanly), then SIGKILL to any still alive after 15 s.
+    """
+    stop = stop or threading.Event()
+    preexec = _end_with_parent if sys.platform.startswith("linux") else None
+    children: dict[str, subprocess.Popen[bytes]] = {}
+    exits: dict[str, list[float]] = {plan.id: [] for plan in plans}
+    previous = signal.signal(signal.SIGTERM, lambda *_: stop.set()) \
+        if threading.current_thread() is threading.main_thread() else None
+    print(f"Vision Lab: {len(plans)} worker processes on one database, behind your proxy: "
+          + ", ".join(f"{p.id} API :{p.port} viewer :{p.viewer_port}" for p in plans)
+          + f" ({plans[0].id} grades; README 'Behind a proxy')", flush=True)
+    code = 0
+    try:
+        for plan in plans:
+            children[plan.id] = subprocess.Popen(plan.command, preexec_fn=preexec)
+        while not stop.wait(poll_s):
+            for plan in plans:
+                returned = children[plan.id].poll()
+                if returned is None:
+                    continue
+                now = time.monotonic()
+                exits[plan.id] = [t for t in exits[plan.id] if now - t < RESTART_WINDOW_S] + [now]
+                if len(exits[plan.id]) > MAX_RESTARTS:
+                    log.error("worker %s exited %d times within %.0f s (last code %s): stopping every worker",
+                              plan.id, len(exits[plan.id]), RESTART_WINDOW_S, returned)
+                    code = 1
+                    stop.set()
+                    break
+                log.warning("worker %s exited (code %s): starting it again", plan.id, returned)
+                children[plan.id] = subprocess.Popen(plan.command, preexec_fn=preexec)
+    except KeyboardInterrupt:
+        pass
+    finally:
+        _stop_children(list(children.values()))
+        if previous is not None:
+            signal.signal(signal.SIGTERM, previous)
+    return code
+
+
+def _stop_children(children: list[subprocess.Popen[bytes]], timeout: float = 15.0) -> None:
+    for child in children:
+        if child.poll() is None:
+            child.terminate()
+    deadline = time.monotonic() + timeout
+    for child in children:
+        try:
+            child.wait(timeout=max(0.1, deadline - time.monotonic()))
+        except subprocess.TimeoutExpired:
+            child.kill()
+            child.wait(timeout=5)
+
+
+__all__ = ["MAX_RESTARTS", "NO_WARMUP_ENV", "RunningLab", "WorkerPlan", "plan_workers", "serve",
+           "serve_workers", "start", "start_kernel_warmup"]

@@ -418,11 +418,42 @@ def test_serve_calls_the_server_with_the_options(monkeypatch, tmp_path):
     assert invoke("serve").exit_code == 0
     assert invoke("serve", "--host", "0.0.0.0", "--port", "9001", "--viewer-port", "9002",
                   "--data-root", str(tmp_path), "--no-warmup").exit_code == 0
-    assert calls == [{"host": "127.0.0.1", "port": 8000, "viewer_port": 8080, "data_root": None, "warmup": True},
-                     {"host": "0.0.0.0", "port": 9001, "viewer_port": 9002, "data_root": str(tmp_path),
-                      "warmup": False}]
+    assert invoke("serve", "--worker-id", "w1", "--peers", "w0=http://h:1,w1=http://h:2", "--no-grading",
+                  "--no-warmup").exit_code == 0
+    assert calls[:2] == [{"host": "127.0.0.1", "port": 8000, "viewer_port": 8080, "data_root": None, "warmup": True,
+                          "worker": None, "grading": True},
+                         {"host": "0.0.0.0", "port": 9001, "viewer_port": 9002, "data_root": str(tmp_path),
+                          "warmup": False, "worker": None, "grading": True}]
+    worker = calls[2].pop("worker")
+    assert (worker.id, dict(worker.peers)) == ("w1", {"w0": "http://h:1", "w1": "http://h:2"})
+    assert calls[2] == {"host": "127.0.0.1", "port": 8000, "viewer_port": 8080, "data_root": None, "warmup": False,
+                        "grading": False}
     assert_one_line_error(invoke("serve", "--port", "70000"), "--port")
     assert_one_line_error(invoke("serve", "--data-root", str(tmp_path / "missing")), "--data-root")
+    assert_one_line_error(invoke("serve", "--worker-id", "W 1"), "--worker-id")
+    assert_one_line_error(invoke("serve", "--worker-id", "w1", "--peers", "w0"), "--peers")
+    assert_one_line_error(invoke("serve", "--peers", "w0=http://h:1"), "--peers")
+
+
+def test_serve_workers_plans_one_process_per_port_and_only_w0_grades(monkeypatch):
+    started = []
+    fake = types.ModuleType("lab.server")
+    from lab.server import plan_workers
+
+    fake.plan_workers = plan_workers
+    fake.serve_workers = lambda plans: started.append(plans) or 0
+    monkeypatch.setitem(sys.modules, "lab.server", fake)
+    assert invoke("serve", "--workers", "3", "--port", "9000", "--viewer-port", "9100", "--no-warmup").exit_code == 0
+    (plans,) = started
+    assert [(p.id, p.port, p.viewer_port) for p in plans] == [("w0", 9000, 9100), ("w1", 9001, 9101),
+                                                              ("w2", 9002, 9102)]
+    for plan in plans:
+        command = list(plan.command)
+        assert command[command.index("--worker-id") + 1] == plan.id
+        assert command[command.index("--peers") + 1] == ",".join(f"w{i}=http://127.0.0.1:{9000 + i}" for i in range(3))
+        assert ("--no-grading" in command) == (plan.id != "w0") and "--no-warmup" in command
+    assert_one_line_error(invoke("serve", "--workers", "2", "--port", "9000", "--viewer-port", "9001"), "--workers")
+    assert_one_line_error(invoke("serve", "--workers", "2", "--no-grading"), "--workers")
 
 
 def test_serve_reports_a_port_in_use_in_one_line(monkeypatch):

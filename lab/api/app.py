@@ -29,6 +29,7 @@ from lab.api.deps import ModuleCatalog
 from lab.api.errors import BodyLimitMiddleware, LabJSONResponse, register_error_handlers
 from lab.api.openapi import install_openapi
 from lab.api.runs import DEFAULT_QUEUE, DEFAULT_WORKERS, LIGHT_WORKERS, RunPool, RunPools, RunRegistry
+from lab.api.workers import WorkerHeaderMiddleware, WorkerIdentity
 from lab.core.pipeline import Pipeline
 from lab.core.store import SessionStore
 
@@ -75,7 +76,8 @@ def create_app(store: SessionStore | None = None, *, modules: Callable[[str], Pi
                module_names: Sequence[str] | None = None, viewer_url: str | None = None,
                max_upload_bytes: int = DEFAULT_MAX_UPLOAD_BYTES, extra_routers: Iterable[APIRouter] = (),
                workers: int = DEFAULT_WORKERS, queued_runs: int = DEFAULT_QUEUE,
-               trust_forwarded_for: bool = False) -> FastAPI:
+               trust_forwarded_for: bool = False, worker: WorkerIdentity | None = None,
+               grading: bool = True) -> FastAPI:
     """Build the REST API and landing page.
 
     Args:
@@ -91,6 +93,11 @@ def create_app(store: SessionStore | None = None, *, modules: Callable[[str], Pi
             Retry-After.
         trust_forwarded_for: count sessions per client by the last ``X-Forwarded-For`` entry (set it only
             behind one trusted proxy); default: by the socket's peer address.
+        worker: this process's id among several sharing the database (:mod:`lab.api.workers`): its
+            sessions' ids carry it, a request for another worker's session is answered 421, and every
+            response names it in ``X-Vision-Lab-Worker``. None: a lone server (ids as before).
+        grading: this process grades submissions (claims them from the database); False: it only stores
+            them and reads them back, another process on the same database grades (``--no-grading``).
     """
     if max_upload_bytes < 1:
         raise ValueError("max_upload_bytes must be positive")
@@ -107,8 +114,12 @@ def create_app(store: SessionStore | None = None, *, modules: Callable[[str], Pi
     app.state.trust_forwarded_for = bool(trust_forwarded_for)
     app.state.viewer_url = viewer_url
     app.state.max_upload_bytes = int(max_upload_bytes)
+    app.state.worker = worker
+    app.state.grading = bool(grading)
     register_error_handlers(app)
     app.add_middleware(BodyLimitMiddleware, max_bytes=int(max_upload_bytes))
+    if worker is not None:
+        app.add_middleware(WorkerHeaderMiddleware, worker=worker.id)
 
     routers = [modules_router.router, sessions_router.router, values_router.router, *extra_routers]
     lessons = _lessons_router()
@@ -120,16 +131,18 @@ def create_app(store: SessionStore | None = None, *, modules: Callable[[str], Pi
     @app.get("/api/health", tags=["service"], summary="Health and server facts",
              description="`status` is `ok` when the API answers; also the version, live sessions and their "
                          "caps, the worker pools (`runs`: `heavy`, `light` and `loads`, each with workers, "
-                         "running, queued, max_queued), the served modules and `viewer_url` (null when no "
-                         "viewer runs). Answered in the event loop, never waiting for a worker, so it stays "
-                         "fast while steps run.")
+                         "running, queued, max_queued), the served modules, `viewer_url` (null when no "
+                         "viewer runs), `worker` (this process's id among several behind a proxy, null for a "
+                         "lone server) and `grading` (whether this process grades submissions). Answered "
+                         "in the event loop, never waiting for a worker, so it stays fast while steps run.")
     async def health(request: Request) -> LabJSONResponse:
         state = request.app.state
         return LabJSONResponse({"status": "ok", "version": lab.__version__, "sessions": len(state.store),
                 "max_sessions": state.store.max_sessions,
                 "max_sessions_per_client": state.store.max_sessions_per_client, "runs": state.pools.stats(),
                 "modules": list(state.catalog.names), "viewer_url": state.viewer_url,
-                "max_upload_bytes": state.max_upload_bytes})
+                "max_upload_bytes": state.max_upload_bytes,
+                "worker": state.worker.id if state.worker is not None else None, "grading": state.grading})
 
     @app.get("/", include_in_schema=False)
     def landing_page() -> Response:

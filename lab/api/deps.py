@@ -2,7 +2,8 @@
 
 All live state is in ``app.state.store`` (a :class:`~lab.core.store.SessionStore` the viewer
 shares); ``app.state.catalog`` knows the modules, ``app.state.runs`` tracks running steps and
-``app.state.pools`` (:class:`~lab.api.runs.RunPools`) run them and load datasets.
+``app.state.pools`` (:class:`~lab.api.runs.RunPools`) run them and load datasets; ``app.state.worker``
+(:class:`~lab.api.workers.WorkerIdentity`, None for a lone server) says which of several processes this is.
 """
 
 from __future__ import annotations
@@ -15,6 +16,7 @@ from fastapi import Depends, Path, Request
 
 from lab.api.errors import ModuleUnavailable, log
 from lab.api.runs import RunPools
+from lab.api.workers import WorkerIdentity
 from lab.core.errors import LabError, UnknownName
 from lab.core.pipeline import Pipeline, Session
 from lab.core.store import SessionStore
@@ -85,9 +87,23 @@ def client_address(request: Request) -> str | None:
 SessionId = Annotated[str, Path(description="The session's id, as returned by POST /api/sessions.")]
 
 
+def get_worker(request: Request) -> WorkerIdentity | None:
+    """This process's worker identity when several share a database (None for a lone server)."""
+    return getattr(request.app.state, "worker", None)
+
+
+def check_session_owner(request: Request, session_id: str) -> None:
+    """421 (:class:`~lab.api.workers.Misdirected`) when ``session_id`` lives in another worker process."""
+    worker = get_worker(request)
+    if worker is not None:
+        worker.check_owner(session_id)
+
+
 def get_session(request: Request, session_id: SessionId) -> Session:
-    """The live session ``session_id`` (404 ``field: session`` saying whether it expired, was deleted
-    or never was)."""
+    """The live session ``session_id``: 421 naming its worker when another process holds it
+    (:mod:`lab.api.workers`), else 404 ``field: session`` saying whether it expired, was deleted or
+    never was."""
+    check_session_owner(request, session_id)
     return get_store(request).get(session_id)
 
 

@@ -53,7 +53,7 @@ class ErrorBody(BaseModel):
 
     error: str = Field(description="The kind: not_found, invalid_request, invalid_control, invalid_value, "
                                    "missing_input, busy, step_failed, cancelled, not_running, capacity, "
-                                   "too_many_requests, overloaded, unavailable, internal.",
+                                   "too_many_requests, overloaded, unavailable, misdirected, internal.",
                        examples=["invalid_control"])
     field: str = Field(description="What is at fault: a control, an option (`options.path`), a value, "
                                    "`session`, `module`, `step`, `body`...", examples=["sigma"])

@@ -17,7 +17,9 @@ Grading never runs in a request: an upload is committed to the database and a wo
 :class:`~lab.lessons.service.LessonService` grades it. The service comes from
 ``app.state.lesson_service``; when the app has none, the router's lifespan builds one from the
 environment (:meth:`LessonService.from_env`) and starts it (requeueing what a killed server left
-running). Tests build an app with just this router: :func:`build_app`.
+running). Tests build an app with just this router: :func:`build_app`. Of several API processes sharing
+the database (``vision-lab serve --workers N``), one grades (:func:`grades_here`); every one accepts
+submissions and answers every read from the database, never from its own memory.
 
 Every submission is graded with the lesson's secret assignment seed (drawn on first use, stored
 with the submissions), so a regrade gives the same score; the seed and the check data's seeds
@@ -73,7 +75,7 @@ async def lessons_lifespan(app: FastAPI) -> AsyncIterator[None]:
     if service is None and _database_exists():
         service = LessonService.from_env()
         app.state.lesson_service = service
-    if service is not None:
+    if service is not None and grades_here(app):
         service.start()
     try:
         yield
@@ -94,14 +96,24 @@ SubmissionId = Annotated[str, Path(description="The id returned by POST /api/les
 
 def get_lesson_service(request: Request) -> LessonService:
     """The app's lesson service (built from the environment and started on first use if the lifespan
-    did not run)."""
+    did not run; started only where :func:`grades_here`)."""
     service = getattr(request.app.state, "lesson_service", None)
     if service is None:
         service = LessonService.from_env()
         request.app.state.lesson_service = service
-    if not service.started:
+    if not service.started and grades_here(request.app):
         service.start()
     return service
+
+
+def grades_here(app: FastAPI) -> bool:
+    """Whether this process grades (claims queued submissions, requeues interrupted ones at start).
+
+    False for the other workers of ``vision-lab serve --workers N`` and for ``--no-grading``: they store
+    submissions and read them, results and the instructor's views back from the shared database, and
+    one process (worker ``w0``) grades, so its start-up requeue cannot take a live grader's claims.
+    """
+    return bool(getattr(app.state, "grading", True))
 
 
 def _summary_text(text: str) -> str:
@@ -346,4 +358,5 @@ def standalone_app() -> FastAPI:
     return build_app(LessonService.from_env())
 
 
-__all__ = ["build_app", "check_upload", "get_lesson_service", "lessons_lifespan", "router", "standalone_app"]
+__all__ = ["build_app", "check_upload", "get_lesson_service", "grades_here", "lessons_lifespan", "router",
+           "standalone_app"]

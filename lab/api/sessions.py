@@ -25,13 +25,15 @@ from fastapi import APIRouter, Body, Depends, Path, Query, Request, Response
 from fastapi.sse import EventSourceResponse, ServerSentEvent
 from pydantic import BaseModel, ConfigDict, Field
 
-from lab.api.deps import CatalogDep, ClientDep, PoolsDep, SessionDep, StoreDep
+from lab.api.deps import (CatalogDep, ClientDep, PoolsDep, SessionDep, StoreDep, check_session_owner,
+                          get_worker)
 from lab.api.errors import LabJSONResponse, NothingRunning, error_responses, jsonable
 from lab.api.runs import RunJob, RunMonitor, RunPool, check_idle, plan_step, plan_until, record_outcome
+from lab.api.workers import MISDIRECTED
 from lab.core.errors import InvalidValue, LabError
 from lab.core.pipeline import DatasetSpec, Pipeline, Session
 
-router = APIRouter(prefix="/api/sessions", tags=["sessions"], responses=error_responses())
+router = APIRouter(prefix="/api/sessions", tags=["sessions"], responses=error_responses(MISDIRECTED))
 logger = logging.getLogger(__name__)
 
 #: How often an event stream looks for new progress (seconds).
@@ -114,8 +116,10 @@ def current_warnings(session: Session) -> list[dict[str, str]]:
             if spec.name in session.metrics for message in latest.get(spec.name, ())]
 
 
-def _load_session(pipeline: Pipeline, spec: DatasetSpec, options: dict[str, Any], seed: int) -> Session:
-    """Load a dataset (on a worker), naming the option at fault in every error."""
+def _load_session(pipeline: Pipeline, spec: DatasetSpec, options: dict[str, Any], seed: int,
+                  session_id: str | None = None) -> Session:
+    """Load a dataset (on a worker), naming the option at fault in every error; ``session_id``: the new
+    session's id (None: the core's default)."""
     option_names = {o.name for o in spec.options}
     try:
         loaded = spec.load(options)
@@ -126,7 +130,7 @@ def _load_session(pipeline: Pipeline, spec: DatasetSpec, options: dict[str, Any]
     except (OSError, ValueError) as exc:  # e.g. a folder that does not exist or holds no images
         field = "options.path" if spec.takes_path else "dataset"
         raise InvalidValue(field, f"dataset {spec.name!r} could not be loaded: {exc}") from None
-    return Session(pipeline, loaded, dataset=spec.name, options=options, seed=seed)
+    return Session(pipeline, loaded, dataset=spec.name, options=options, seed=seed, session_id=session_id)
 
 
 _CREATE_RESPONSES = retry_later_responses({
@@ -153,7 +157,9 @@ async def create_session(request: Request, body: SessionCreate, catalog: Catalog
         raise type(exc)(f"options.{exc.field}", exc.reason) from None
     store.check_room(client=client)  # refuse at once rather than after waiting for a worker
     options = dict(body.options)
-    load = partial(_load_session, pipeline, spec, options, body.seed)
+    worker = get_worker(request)  # several processes: the id names this one, which a proxy routes on
+    load = partial(_load_session, pipeline, spec, options, body.seed,
+                   worker.new_session_id() if worker is not None else None)
     session = await pools.loads.call(partial(store.admit, load, client=client))
     return LabJSONResponse(session_json(request, session), status_code=201,
                            headers={"Location": f"/api/sessions/{session.id}"})
@@ -169,8 +175,9 @@ def read_session(request: Request, session: SessionDep) -> LabJSONResponse:
 
 @router.delete("/{session_id}", status_code=204, summary="Delete a session",
                description="Forget the session (a running step is cancelled).")
-def delete_session(store: StoreDep,
+def delete_session(request: Request, store: StoreDep,
                    session_id: Annotated[str, Path(description="The session's id.")]) -> Response:
+    check_session_owner(request, session_id)
     store.delete(session_id)
     return Response(status_code=204)
 

@@ -32,13 +32,14 @@ from starlette.exceptions import HTTPException as StarletteHTTPException
 from lab.api.deps import SessionDep
 from lab.api.errors import LabJSONResponse, error_responses
 from lab.api.runs import check_idle
+from lab.api.workers import MISDIRECTED
 from lab.core import budgets, codecs
 from lab.core.errors import InvalidValue, UnknownName
 from lab.core.pipeline import Pipeline
 from lab.core.step import type_name
 from lab.core.values import Cameras, Image, ImageSet, Points2D, Segments2D
 
-router = APIRouter(prefix="/api/sessions", tags=["values"], responses=error_responses())
+router = APIRouter(prefix="/api/sessions", tags=["values"], responses=error_responses(MISDIRECTED))
 
 ValueName = Annotated[str, Path(description="State value name (GET /api/sessions/{id} lists them).")]
 
