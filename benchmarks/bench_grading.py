@@ -1,4 +1,4 @@
-"""Grading a class: the SfM lesson's submissions on a LocalCluster of 2 worker processes against one at a time.
+"""Grading a class: SfM lesson submissions on a LocalCluster of 2 worker processes against one at a time.
 
 Issue 20 item 4. ``--count`` submissions of lessons/04-sfm (200 by default), a fixed mix (shuffled
 with ``--seed``, the same list in every run):
@@ -206,7 +206,8 @@ def table_figures(queue: Any, ids: list[str], wall_s: float, cpu_s: float, load:
     import numpy as np
 
     rows = [queue.get(i) for i in ids]
-    times = np.array([r.finished - r.started for r in rows if r.finished is not None and r.started is not None])
+    times = np.array([r.finished - r.started for r in rows
+                      if r.finished is not None and r.started is not None])
     return {
         "submissions": len(ids), "wall_s": wall_s, "per_second": len(ids) / wall_s,
         "p50_s": float(np.percentile(times, 50)) if times.size else None,
@@ -263,8 +264,8 @@ def run_sequential(database: Database, chosen: list[tuple[str, str, str]], seed:
 def _worker_pids(client: Any) -> dict[str, int]:
     """Dask worker name -> its process id (the table's ``worker`` column holds the name)."""
     pids = client.run(os.getpid)  # address -> pid
-    return {str(info["name"]): int(pids[address]) for address, info in client.scheduler_info()["workers"].items()
-            if address in pids}
+    workers = client.scheduler_info()["workers"]
+    return {str(info["name"]): int(pids[address]) for address, info in workers.items() if address in pids}
 
 
 def run_cluster(database: Database, chosen: list[tuple[str, str, str]], seed: int, *, workers: int,
@@ -318,29 +319,36 @@ def kill_a_worker(client: Any, queue: Any, ids: list[str]) -> dict[str, Any]:
             row = queue.get(submission_id)
             if row.status == "running" and row.worker in pids:
                 os.kill(pids[row.worker], signal.SIGKILL)
-                print(f"  killed worker {row.worker} (pid {pids[row.worker]}) grading {row.student}", flush=True)
+                print(f"  killed worker {row.worker} (pid {pids[row.worker]}) grading {row.student}",
+                      flush=True)
                 return {"submission": submission_id, "student": row.student, "worker": row.worker,
                         "pid": pids[row.worker], "at_s": time.time() - (row.started or time.time())}
         time.sleep(0.05)
     raise RuntimeError("no submission was running on a worker for 60 s: nothing to kill")
 
 
-def databases(names: list[str], folder: Path) -> list[Database]:
-    found = []
+def check_databases(names: list[str]) -> None:
+    """Refuse an unknown name, or PostgreSQL where its server binaries are missing, before anything runs."""
     for name in names:
-        if name == "sqlite":
-            found.append(Database("sqlite", folder))
-        elif name == "postgresql":
-            sys.path.insert(0, str(REPO / "tests" / "lessons"))
-            from postgres_server import binaries, start
-
-            if binaries() is None:
-                raise SystemExit("PostgreSQL is not installed (apt-get install -y postgresql); "
-                                 "run with --databases sqlite")
-            found.append(Database("postgresql", folder, postgres_base=start()))
-        else:
+        if name not in ("sqlite", "postgresql"):
             raise SystemExit(f"--databases: unknown database {name!r} (sqlite, postgresql)")
-    return found
+    if "postgresql" in names:
+        sys.path.insert(0, str(REPO / "tests" / "lessons"))
+        from postgres_server import binaries
+
+        if binaries() is None:
+            raise SystemExit("PostgreSQL is not installed (apt-get install -y postgresql); "
+                             "run with --databases sqlite")
+
+
+def database_of(name: str, folder: Path) -> Database:
+    """SQLite files in ``folder``, or databases on the tests' PostgreSQL server (started on first use, stopped
+    when this process exits)."""
+    if name == "sqlite":
+        return Database("sqlite", folder)
+    from postgres_server import start
+
+    return Database("postgresql", folder, postgres_base=start())
 
 
 def summary(per_database: dict[str, dict[str, Any]]) -> dict[str, Any]:
@@ -380,7 +388,8 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--count", type=int, default=200, help="submissions per run (default 200)")
     parser.add_argument("--workers", type=int, default=2, help="worker processes of the cluster (default 2)")
-    parser.add_argument("--databases", default="sqlite,postgresql", help="comma-separated: sqlite, postgresql")
+    parser.add_argument("--databases", default="sqlite,postgresql",
+                        help="comma-separated: sqlite, postgresql (default both)")
     parser.add_argument("--kill-at", type=float, default=0.4,
                         help="kill a worker once this fraction is graded (1: no kill)")
     parser.add_argument("--threads", type=int, default=1, help="math-library threads of each grading process")
@@ -391,12 +400,16 @@ def main() -> None:
     for variable in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS", "NUMEXPR_NUM_THREADS",
                      "NUMBA_NUM_THREADS"):
         os.environ[variable] = str(args.threads)  # before numpy is imported here or in a worker
+    names = args.databases.split(",")
+    check_databases(names)
+    signal.signal(signal.SIGTERM, lambda *_: sys.exit(143))  # so the PostgreSQL server stops too (atexit)
     chosen = mix(args.count, args.seed)
     categories = {c: sum(1 for k, _, _ in chosen if k == c) for c in ("correct", "wrong", "abusive")}
     print(f"{args.count} submissions of {LESSON}: {categories}; load {os.getloadavg()[0]:.2f}", flush=True)
     per_database: dict[str, dict[str, Any]] = {}
     with tempfile.TemporaryDirectory(prefix="bench-grading-") as scratch:
-        for database in databases(args.databases.split(","), Path(scratch)):
+        for name in names:
+            database = database_of(name, Path(scratch))
             runs = {}
             for mode in ("sequential", "cluster"):
                 print(f"{database.name} {mode}: grading {args.count} ...", flush=True)
@@ -408,6 +421,7 @@ def main() -> None:
                       f"{r['p99_s']:.2f} s, CPU {r['cpu_s_per_submission']:.2f} s/submission "
                       f"({r['cores_used']:.2f} cores), lost {r['lost']}, graded twice {r['graded_twice']}, "
                       f"load {r['load_start']:.2f} -> {r['load_end']:.2f}", flush=True)
+                print("RUN " + json.dumps(rounded({"database": name, "mode": mode, **r})), flush=True)
             per_database[database.name] = runs
     result = summary(per_database)
     result.update(count=args.count, workers=args.workers, threads=args.threads, mix=categories,
