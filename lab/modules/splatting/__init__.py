@@ -27,9 +27,8 @@ State names:
     images, cameras, test_cameras, bounds   the NeRF module's datasets' (training views, held-out poses)
     sfm_points      PointCloud      points to start from (object_with_points; optional)
     gaussians       SplatModel      the initial Gaussians
-    initial_splats  GaussianSplats  them, drawn
+    splats          GaussianSplats  them drawn; train_splats replaces it by the trained ones
     model           SplatModel      the trained Gaussians
-    splats          GaussianSplats  them, drawn
     loss_curve, psnr_curve  Curve   the loss and the training-view PSNR over iterations
     density_curve   Curve           cloned, split, pruned and held Gaussians per density control
     preview         Image           training view 0 rendered by the trained Gaussians

@@ -44,7 +44,7 @@ class InitResult:
     """Result of :func:`initialize_gaussians`."""
 
     gaussians: SplatModel
-    initial_splats: GaussianSplats
+    splats: GaussianSplats
     count: int = metric("Gaussians")
     mean_scale: float = metric("mean initial scale (scene units)")
 

@@ -67,7 +67,7 @@ def test_initial_gaussians_fill_the_scene_box(session):
     np.testing.assert_allclose(torch.sigmoid(torch.as_tensor(model.opacity_logits)).numpy(), 0.1, rtol=1e-5)
     assert np.all(model.log_scales[:, 0] == model.log_scales[:, 1])          # isotropic
     assert np.all(model.sh[:, 1:] == 0)
-    splats = session.state["initial_splats"]
+    splats = session.state["splats"]
     assert splats.centers.shape == (300, 3) and splats.covariances.shape == (300, 3, 3)
 
 
