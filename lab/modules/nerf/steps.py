@@ -32,6 +32,7 @@ from lab.modules.nerf.mesh import coloured_mesh, density_lattice, head_on_rays, 
 from lab.modules.nerf.model import (ImageRendering, NerfMLP, checkpoint_from, network_from, render_image,
                                     render_rays)
 from lab.modules.nerf.path import orbit_path
+from lab.modules.nerf.preview import FollowedPreview, offering_preview
 from lab.modules.nerf.rays import cameras_rays, scaled_cameras
 from lab.modules.nerf.training import PreviewRays, TrainingOptions, TrainingRun, train_field, training_curves
 from lab.modules.nerf.values import (EncodingConfig, FieldConfig, NerfCheckpoint, RayBundle, SceneBounds,
@@ -252,8 +253,10 @@ def train_nerf(rays: RayBundle, encoding: EncodingConfig, cameras: Cameras, *,
     :mod:`~lab.modules.nerf.grid`): density and colour on a voxel grid trained coarse to fine up to
     ``grid_resolution``^3 with ``grid_learning_rate``, empty space skipped and rays terminated early.
     Stops after ``iterations`` or ``budget_seconds`` of training (0: no time limit), whichever comes
-    first. Yields the loss and PSNR every 10 iterations and a preview of training view 0 (at most 64 px)
-    every ``preview_every``.
+    first. Yields the loss and PSNR every 10 iterations and a preview (at most 64 px) every
+    ``preview_every``: of training view 0, or of the camera the viewer makes it follow (the browser's,
+    :mod:`~lab.modules.nerf.preview`: each snapshot offers the follower); the result's ``preview`` is
+    training view 0.
 
     Args:
         method: mlp (NeRF's network) or grid (the accelerated voxel grid).
@@ -276,28 +279,29 @@ def train_nerf(rays: RayBundle, encoding: EncodingConfig, cameras: Cameras, *,
     colour = torch.tensor(BACKGROUNDS[background], dtype=torch.float32, device=device)
     small = scaled_cameras(cameras, min(1.0, PREVIEW_SIDE / max(cameras.width, cameras.height)))
     origins, directions = cameras_rays(small, device=device)
-    preview = PreviewRays(origins[0], directions[0], (small.height, small.width))
+    view0 = PreviewRays(origins[0], directions[0], (small.height, small.width))
+    preview = FollowedPreview(cameras, bundle.bounds, device=device, still_side=PREVIEW_SIDE)
     back = np.asarray(BACKGROUNDS[background])
     model: NerfCheckpoint | GridCheckpoint
     if method == "grid":
         grid_options = GridOptions(grid_resolution, batch_rays, grid_learning_rate, iterations,
                                    budget_seconds, preview_every)
-        run = yield from train_grid_field(bundle, grid_options, background=colour, preview=preview, rng=rng,
-                                          device=device)
+        run = yield from offering_preview(train_grid_field(bundle, grid_options, background=colour,
+                                                           preview=preview, rng=rng, device=device), preview)
         assert isinstance(run.net, GridField)
         model = grid_checkpoint_from(run.net, bundle.bounds, back)
     else:
         config = FieldConfig(as_encoding(encoding), hidden, layers, samples, fine_samples)
         options = TrainingOptions(batch_rays, learning_rate, lr_decay, iterations, budget_seconds,
                                   preview_every)
-        run = yield from train_field(bundle, config, options, background=colour, preview=preview, rng=rng,
-                                     device=device)
+        run = yield from offering_preview(train_field(bundle, config, options, background=colour,
+                                                      preview=preview, rng=rng, device=device), preview)
         assert isinstance(run.net, NerfMLP)
         model = checkpoint_from(run.net, bundle.bounds, back)
     warnings = _check_run(run, iterations, budget_seconds)
     tail = max(1, run.iterations // 10)
     loss_curve, psnr_curve = training_curves(run)
-    final = FieldRenderer(model, device).image(preview.origins, preview.directions, preview.shape)
+    final = FieldRenderer(model, device).image(view0.origins, view0.directions, view0.shape)
     return TrainResult(model, loss_curve, psnr_curve, Image(final.color, name="training view 0"), warnings,
                        float(run.losses[-tail:].mean()), float(np.minimum(run.psnrs[-tail:], 99.0).mean()),
                        run.iterations, run.seconds, run.iterations * batch_rays / max(run.seconds, 1e-9),
