@@ -92,8 +92,12 @@ def test_the_404_of_a_missing_session_says_truthfully_why():
 
 
 def _gated_ready(client: TestClient) -> str:
+    """A gated session whose inputs of crawl are made, once the heavy pool is idle again: the run's answer
+    comes when its job ends, the worker gives its place back just after (a test that then expects a free
+    worker must not see that place still held)."""
     sid = new_session(client, "gated")
     assert client.post(f"/api/sessions/{sid}/run-until/mean_intensity").status_code == 200
+    wait_until(lambda: _heavy_idle(client), "the worker to give its place back")
     return sid
 
 
