@@ -97,7 +97,7 @@ def test_a_worker_that_does_not_grade_stores_submissions_and_reads_back_what_ano
         assert answer.status_code == 202, answer.text
         submission_id = answer.json()["id"]
         time.sleep(0.3)  # several poll periods of a dispatcher, were one running here
-        assert not front.app.state.lesson_service.started
+        assert not front.app.state.lesson_service.pool.running  # no dispatcher claims here
         assert front.get(f"/api/submissions/{submission_id}").json()["status"] == "queued"
         with grader:  # the grading worker starts, claims it from the shared database and grades it
             deadline = time.monotonic() + 30
