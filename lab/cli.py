@@ -358,6 +358,9 @@ def serve(
     no_grading: Annotated[bool, typer.Option(
         "--no-grading", help="Store submissions and read them back, but leave grading to the one process on "
                              "the same database that grades (with --workers: every worker but w0).")] = False,
+    trust_forwarded_for: Annotated[bool, typer.Option(
+        "--trust-forwarded-for", help="Behind one trusted proxy: count each client's sessions by the last "
+                                      "X-Forwarded-For entry, not the proxy's address.")] = False,
 ) -> None:
     """Start the landing page, the REST API and the 3D viewer (Ctrl-C stops them).
 
@@ -371,6 +374,7 @@ def serve(
         if workers > 1:
             _serve_workers(workers, host=host, port=port, viewer_port=viewer_port, data_root=data_root,
                            unsafe_sandbox=unsafe_sandbox, no_warmup=no_warmup,
+                           trust_forwarded_for=trust_forwarded_for,
                            given=worker_id is not None or peers is not None or no_grading)
             return
         if unsafe_sandbox:
@@ -381,7 +385,8 @@ def serve(
 
         start_server(host=host, port=port, viewer_port=viewer_port,
                      data_root=str(data_root) if data_root is not None else None, warmup=not no_warmup,
-                     worker=_worker_identity(worker_id, peers), grading=not no_grading)
+                     worker=_worker_identity(worker_id, peers), grading=not no_grading,
+                     trust_forwarded_for=trust_forwarded_for)
 
 
 def _worker_identity(worker_id: str | None, peers: str | None) -> "WorkerIdentity | None":
@@ -398,7 +403,7 @@ def _worker_identity(worker_id: str | None, peers: str | None) -> "WorkerIdentit
 
 
 def _serve_workers(workers: int, *, host: str, port: int, viewer_port: int, data_root: Path | None,
-                   unsafe_sandbox: bool, no_warmup: bool, given: bool) -> None:
+                   unsafe_sandbox: bool, no_warmup: bool, trust_forwarded_for: bool, given: bool) -> None:
     """``serve --workers N``: start and watch the N worker processes (:func:`lab.server.serve_workers`)."""
     from lab.server import plan_workers, serve_workers
 
@@ -406,7 +411,8 @@ def _serve_workers(workers: int, *, host: str, port: int, viewer_port: int, data
         raise InvalidValue("--workers", "--worker-id, --peers and --no-grading are set per worker by "
                                         "--workers; give them only to a single worker")
     extra = [*(["--data-root", str(data_root)] if data_root is not None else []),
-             *(["--unsafe-sandbox"] if unsafe_sandbox else []), *(["--no-warmup"] if no_warmup else [])]
+             *(["--unsafe-sandbox"] if unsafe_sandbox else []), *(["--no-warmup"] if no_warmup else []),
+             *(["--trust-forwarded-for"] if trust_forwarded_for else [])]
     try:
         plans = plan_workers(workers, host=host, port=port, viewer_port=viewer_port, extra_args=extra)
     except ValueError as exc:

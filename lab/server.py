@@ -65,8 +65,8 @@ def _display_host(host: str) -> str:
 
 def _build(host: str, port: int, viewer_port: int, store: SessionStore | None,
            modules: Mapping[str, Pipeline] | Iterable[Pipeline] | None, log_level: str,
-           data_root: str | None, worker: WorkerIdentity | None = None,
-           grading: bool = True) -> tuple[SessionStore, ViewerApp, str, uvicorn.Server]:
+           data_root: str | None, worker: WorkerIdentity | None = None, grading: bool = True,
+           trust_forwarded_for: bool = False) -> tuple[SessionStore, ViewerApp, str, uvicorn.Server]:
     import uvicorn
 
     from lab.api.app import create_app
@@ -85,11 +85,13 @@ def _build(host: str, port: int, viewer_port: int, store: SessionStore | None,
         # wildcard address the landing page resolves ":PORT" against the host the browser used.
         viewer_url = f":{viewer.port}" if host in ("0.0.0.0", "::", "") else viewer.url
         if modules is None:
-            app = create_app(store, viewer_url=viewer_url, worker=worker, grading=grading)
+            app = create_app(store, viewer_url=viewer_url, worker=worker, grading=grading,
+                             trust_forwarded_for=trust_forwarded_for)
         else:
             pipelines = dict(modules) if isinstance(modules, Mapping) else {p.name: p for p in modules}
             app = create_app(store, modules=pipelines.__getitem__, module_names=list(pipelines),
-                             viewer_url=viewer_url, worker=worker, grading=grading)
+                             viewer_url=viewer_url, worker=worker, grading=grading,
+                             trust_forwarded_for=trust_forwarded_for)
         config = uvicorn.Config(app, host=host, port=port, log_level=log_level)
         api_server = uvicorn.Server(config)
     except BaseException:
@@ -144,7 +146,7 @@ def serve(*, host: str = "127.0.0.1", port: int = 8000, viewer_port: int = 8080,
           store: SessionStore | None = None,
           modules: Mapping[str, Pipeline] | Iterable[Pipeline] | None = None, log_level: str = "info",
           data_root: str | None = None, warmup: bool = True, worker: WorkerIdentity | None = None,
-          grading: bool = True) -> None:
+          grading: bool = True, trust_forwarded_for: bool = False) -> None:
     """Serve the landing page and REST API on ``port`` and the viewer on ``viewer_port``; blocks
     until interrupted (Ctrl-C / SIGTERM), then stops both.
 
@@ -152,10 +154,11 @@ def serve(*, host: str = "127.0.0.1", port: int = 8000, viewer_port: int = 8080,
     (default: every registered module); ``data_root`` limits the folders datasets may read
     (:class:`~lab.core.SessionStore`); ``warmup`` compiles the kernels in the background
     (:func:`start_kernel_warmup`). ``worker`` and ``grading``: this process as one of several on one
-    database (:func:`lab.api.app.create_app`; :func:`serve_workers` starts them).
+    database (:func:`lab.api.app.create_app`; :func:`serve_workers` starts them);
+    ``trust_forwarded_for``: behind one trusted proxy, count clients by ``X-Forwarded-For``.
     """
     store, viewer, _viewer_url, api_server = _build(host, port, viewer_port, store, modules, log_level,
-                                                    data_root, worker, grading)
+                                                    data_root, worker, grading, trust_forwarded_for)
     start_kernel_warmup(_served_names(modules), enabled=warmup)
     name = f" worker {worker.id}" if worker is not None else ""
     print(f"Vision Lab{name}: landing page and REST API on http://{_display_host(host)}:{port} "

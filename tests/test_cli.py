@@ -419,15 +419,15 @@ def test_serve_calls_the_server_with_the_options(monkeypatch, tmp_path):
     assert invoke("serve", "--host", "0.0.0.0", "--port", "9001", "--viewer-port", "9002",
                   "--data-root", str(tmp_path), "--no-warmup").exit_code == 0
     assert invoke("serve", "--worker-id", "w1", "--peers", "w0=http://h:1,w1=http://h:2", "--no-grading",
-                  "--no-warmup").exit_code == 0
+                  "--no-warmup", "--trust-forwarded-for").exit_code == 0
     assert calls[:2] == [{"host": "127.0.0.1", "port": 8000, "viewer_port": 8080, "data_root": None, "warmup": True,
-                          "worker": None, "grading": True},
+                          "worker": None, "grading": True, "trust_forwarded_for": False},
                          {"host": "0.0.0.0", "port": 9001, "viewer_port": 9002, "data_root": str(tmp_path),
-                          "warmup": False, "worker": None, "grading": True}]
+                          "warmup": False, "worker": None, "grading": True, "trust_forwarded_for": False}]
     worker = calls[2].pop("worker")
     assert (worker.id, dict(worker.peers)) == ("w1", {"w0": "http://h:1", "w1": "http://h:2"})
     assert calls[2] == {"host": "127.0.0.1", "port": 8000, "viewer_port": 8080, "data_root": None, "warmup": False,
-                        "grading": False}
+                        "grading": False, "trust_forwarded_for": True}
     assert_one_line_error(invoke("serve", "--port", "70000"), "--port")
     assert_one_line_error(invoke("serve", "--data-root", str(tmp_path / "missing")), "--data-root")
     assert_one_line_error(invoke("serve", "--worker-id", "W 1"), "--worker-id")
@@ -443,7 +443,8 @@ def test_serve_workers_plans_one_process_per_port_and_only_w0_grades(monkeypatch
     fake.plan_workers = plan_workers
     fake.serve_workers = lambda plans: started.append(plans) or 0
     monkeypatch.setitem(sys.modules, "lab.server", fake)
-    assert invoke("serve", "--workers", "3", "--port", "9000", "--viewer-port", "9100", "--no-warmup").exit_code == 0
+    assert invoke("serve", "--workers", "3", "--port", "9000", "--viewer-port", "9100", "--no-warmup",
+                  "--trust-forwarded-for").exit_code == 0
     (plans,) = started
     assert [(p.id, p.port, p.viewer_port) for p in plans] == [("w0", 9000, 9100), ("w1", 9001, 9101),
                                                               ("w2", 9002, 9102)]
@@ -451,7 +452,8 @@ def test_serve_workers_plans_one_process_per_port_and_only_w0_grades(monkeypatch
         command = list(plan.command)
         assert command[command.index("--worker-id") + 1] == plan.id
         assert command[command.index("--peers") + 1] == ",".join(f"w{i}=http://127.0.0.1:{9000 + i}" for i in range(3))
-        assert ("--no-grading" in command) == (plan.id != "w0") and "--no-warmup" in command
+        assert ("--no-grading" in command) == (plan.id != "w0")
+        assert "--no-warmup" in command and "--trust-forwarded-for" in command
     assert_one_line_error(invoke("serve", "--workers", "2", "--port", "9000", "--viewer-port", "9001"), "--workers")
     assert_one_line_error(invoke("serve", "--workers", "2", "--no-grading"), "--workers")
 
