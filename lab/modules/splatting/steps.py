@@ -24,7 +24,7 @@ import numpy as np
 import torch
 
 from lab.core import (Cameras, Curve, GaussianSplats, Image, ImageSet, InvalidControl, InvalidValue,
-                      PointCloud, Progress, Range, metric, step_result)
+                      PointCloud, Progress, Range, Warnings, metric, step_result)
 from lab.modules.nerf import SceneBounds, orbit_path, training_views
 from lab.modules.splatting.contributions import PixelContributions, pixel_contributions
 from lab.modules.splatting.gaussians import view_of
@@ -129,6 +129,7 @@ class TrainResult:
     psnr_curve: Curve
     density_curve: Curve
     preview: Image
+    warnings: Warnings
     final_loss: float = metric("mean loss over the last 10 % of iterations")
     train_psnr: float = metric("mean PSNR of the training views over the last 10 % of iterations", unit="dB")
     iterations: int = metric("optimizer steps taken")
@@ -194,15 +195,25 @@ def train_splats(gaussians: SplatModel, images: ImageSet, cameras: Cameras, *,
                                    opacity_reset_every, ssim_weight, preview_every)
     run = yield from train_gaussians(initial, pixels, cameras, options, preview_view=0, rng=rng,
                                      device=device)
+    warnings = _check_run(run, iterations, budget_seconds)
     tail = max(1, run.iterations // 10)
     loss_curve, psnr_curve, density_curve = _curves(run)
     preview = render_model(run.model, cameras, 0, device=device)
     events = run.events
     return TrainResult(run.model, run.model.splats(), loss_curve, psnr_curve, density_curve,
-                       Image(preview, name="training view 0"), float(run.losses[-tail:].mean()),
+                       Image(preview, name="training view 0"), warnings, float(run.losses[-tail:].mean()),
                        float(np.minimum(run.psnrs[-tail:], 99.0).mean()), run.iterations, run.seconds,
                        len(run.model), sum(e.clones for e in events), sum(e.splits for e in events),
                        sum(e.prunes for e in events))
+
+
+def _check_run(run: SplatTrainingRun, iterations: int, budget_seconds: float) -> tuple[str, ...]:
+    """A warning for a run that stopped before its iterations and its budget (cancelled: the Gaussians
+    trained so far are the result)."""
+    if run.iterations < iterations and not 0 < budget_seconds <= run.seconds:
+        return (f"stopped after {run.iterations} of {iterations} iterations: the Gaussians trained so far "
+                "are kept",)
+    return ()
 
 
 def _curves(run: SplatTrainingRun) -> tuple[Curve, Curve, Curve]:
