@@ -263,6 +263,7 @@ def serve_workers(plans: list[WorkerPlan], *, stop: threading.Event | None = Non
     beyond that every worker is stopped and the code is 1. Stopping sends SIGTERM to each (uvicorn shuts
     down cleanly), then SIGKILL to any still alive after 15 s.
     """
+    _check_ports_free(plans)
     stop = stop or threading.Event()
     preexec = _end_with_parent if sys.platform.startswith("linux") else None
     children: dict[str, subprocess.Popen[bytes]] = {}
@@ -298,6 +299,22 @@ def serve_workers(plans: list[WorkerPlan], *, stop: threading.Event | None = Non
         if previous is not None:
             signal.signal(signal.SIGTERM, previous)
     return code
+
+
+def _check_ports_free(plans: list[WorkerPlan]) -> None:
+    """OSError (address in use) naming the first worker whose API port is taken, before anything starts
+    (each worker would otherwise fail at start-up and be restarted in vain)."""
+    import socket
+
+    for plan in plans:
+        host = plan.command[plan.command.index("--host") + 1]
+        with socket.socket(socket.AF_INET6 if ":" in host else socket.AF_INET) as probe:
+            probe.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)  # as uvicorn binds
+            try:
+                probe.bind((host, plan.port))
+            except OSError as exc:
+                raise OSError(exc.errno, f"worker {plan.id}'s port {plan.port} on {host}: {exc.strerror}; "
+                                         "choose another --port") from None
 
 
 def _stop_children(children: list[subprocess.Popen[bytes]], timeout: float = 15.0) -> None:

@@ -3,7 +3,10 @@ worker only (the real processes behind a proxy: test_api_worker_processes.py).""
 
 from __future__ import annotations
 
+import os
+import socket
 import sys
+import threading
 import time
 from pathlib import Path
 
@@ -15,6 +18,7 @@ from lab.core import SessionStore
 from lab.lessons.format import LessonCatalog
 from lab.lessons.service import LessonService
 from lab.lessons.store import SubmissionQueue
+from lab.server import MAX_RESTARTS, WorkerPlan, serve_workers
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "lessons"))
 from lesson_helpers import FIXTURES, submission
@@ -110,3 +114,49 @@ def test_a_worker_that_does_not_grade_stores_submissions_and_reads_back_what_ano
         listed = front.get("/api/lessons/00-toy/submissions").json()
         assert [s["id"] for s in listed["submissions"]] == [submission_id] and listed["counts"]["done"] == 1
         assert front.get("/api/lessons/00-toy/stats").json()["lesson"] == "00-toy"
+
+
+def _plan(name: str, code: str, port: int) -> WorkerPlan:
+    return WorkerPlan(name, port, port + 100, (sys.executable, "-c", code, "--host", "127.0.0.1"))
+
+
+def test_the_supervisor_restarts_a_worker_that_exits_and_gives_up_on_one_that_keeps_dying(tmp_path):
+    starts = tmp_path / "starts"
+    crashing = _plan("w0", f"open({str(starts)!r}, 'a').write('x'); raise SystemExit(3)", free_port())
+    assert serve_workers([crashing], poll_s=0.02) == 1
+    assert starts.read_text() == "x" * (MAX_RESTARTS + 1)  # the first start and MAX_RESTARTS more
+
+    stop = threading.Event()
+    started = tmp_path / "pid"
+    code = f"import os, time; open({str(started)!r}, 'w').write(str(os.getpid())); time.sleep(60)"
+    sleeper = _plan("w0", code, free_port())
+    runner = threading.Thread(target=lambda: codes.append(serve_workers([sleeper], stop=stop, poll_s=0.02)))
+    codes: list[int] = []
+    runner.start()
+    deadline = time.monotonic() + 30
+    while not (started.exists() and started.read_text()):
+        assert time.monotonic() < deadline, "the worker never started"
+        time.sleep(0.02)
+    stop.set()
+    runner.join(timeout=30)
+    assert codes == [0]
+    with pytest.raises(ProcessLookupError):  # stopped and reaped
+        os.kill(int(started.read_text()), 0)
+
+
+def test_the_supervisor_refuses_a_taken_port_before_starting_anything(tmp_path):
+    with socket.socket() as taken:
+        taken.bind(("127.0.0.1", 0))
+        taken.listen()
+        port = taken.getsockname()[1]
+        marker = tmp_path / "started"
+        with pytest.raises(OSError, match=f"worker w1's port {port}"):
+            serve_workers([_plan("w0", f"open({str(marker)!r}, 'w')", free_port()),
+                           _plan("w1", f"open({str(marker)!r}, 'w')", port)])
+    assert not marker.exists()
+
+
+def free_port() -> int:
+    with socket.socket() as probe:
+        probe.bind(("127.0.0.1", 0))
+        return probe.getsockname()[1]
