@@ -14,12 +14,13 @@ that were invalidated. The same drawer serves a browser tab, and :func:`lab.view
 (a headless server's scene, saved as one HTML file).
 
 A changed value's drawing is changed in place where it can be (:meth:`Renderer.redraw`): a GUI picture or
-chart keeps its element for as long as its value is drawn, and is removed only when the value is gone.
-viser's browser client applies a frame's GUI updates after the frame's adds and removes, and viser's
-``add_image`` is an add followed by an update (the picture travels as an update): an element removed and
-added again for a new value, when two refreshes reach a slow page within one frame, gets its update after
-its removal, and the browser logs "Tried to update non-existent component" (issue 16). Scene nodes are
-replaced under their name (the client orders scene updates against removals itself).
+chart keeps its element for as long as its value is drawn, and is removed only when the value is gone (a
+curve that turns from a line chart into bars, or back, hides one element and shows the other). viser's
+browser client applies a frame's GUI updates after the frame's adds and removes, and viser's ``add_image``
+is an add followed by an update (the picture travels as an update): an element removed and added again for
+a new value, when two refreshes reach a slow page within one frame, gets its update after its removal, and
+the browser logs "Tried to update non-existent component" (issue 16). Scene nodes are replaced under their
+name (the client orders scene updates against removals itself).
 
 Pure helpers (no viser): :func:`to_rgb8`, :func:`overlay_view` and :func:`curve_image` return
 ``uint8`` arrays, so reports and tests can use them directly.
@@ -433,9 +434,8 @@ class Renderer:
         """Bring ``drawn`` (this renderer's drawing of an earlier value of ``name``) up to date with ``value``
         by changing its handles in place; False when it cannot, and :class:`StateDrawer` then removes it and
         draws the value anew. The default: it cannot (a scene node is replaced under its own name, which
-        viser's client handles in order). The GUI renderers always can, but for a chart changing kind: a GUI
-        picture or chart keeps its element for as long as its value is drawn (the module docstring says
-        why)."""
+        viser's client handles in order). The GUI renderers always can: a GUI picture or chart keeps its
+        element for as long as its value is drawn (the module docstring says why)."""
         return False
 
 
@@ -746,7 +746,9 @@ class ImageSetRenderer(Renderer):
 
 class CurveRenderer(Renderer):
     """:class:`Curve` -> a uPlot chart (line, scatter) or a bar chart image where the worst bar is red; a new
-    curve of the same kind changes the chart in place (:func:`lab.viewer.plots.set_uplot`)."""
+    curve changes the element in place (:func:`lab.viewer.plots.set_uplot`). A curve that turns from a chart
+    into a picture (or back) shows the other element and hides the one it had: both stay until the value
+    goes, so no element is removed while an update of it may still be on its way to the page."""
 
     value_type = Curve
     in_scene = False
@@ -756,29 +758,45 @@ class CurveRenderer(Renderer):
         return value.kind == "bar" or len(value.x) < 2
 
     def draw(self, canvas, name, value: Curve, state, order) -> Drawn:
-        title = value.title or name
-        with _gui_context(canvas.plots):
-            if self.as_picture(value):
-                chart = curve_image(replace(value, title=""))  # the panel's label is the title
-                handle = canvas.gui.add_image(chart, label=title, format="png", order=order)
-            else:
-                handle = add_uplot(canvas.gui, value, title=title, order=order, name=name)
-        return Drawn(self.fingerprint(name, value, state, canvas), [handle],
-                     parts={"chart": handle, "picture": self.as_picture(value)})
+        drawn = Drawn(self.fingerprint(name, value, state, canvas), [],
+                      parts={"line": None, "bars": None, "picture": self.as_picture(value)})
+        self._show(canvas, name, value, order, drawn)
+        return drawn
 
     def redraw(self, canvas, name, value: Curve, state, order, drawn: Drawn) -> bool:
-        if drawn.parts["picture"] != self.as_picture(value):
-            return False  # a chart turned into a picture (or back): another kind of element
-        handle, title = drawn.parts["chart"], value.title or name
-        if drawn.parts["picture"]:
+        self._show(canvas, name, value, order, drawn)
+        return True
+
+    def _show(self, canvas: Canvas, name: str, value: Curve, order: float, drawn: Drawn) -> None:
+        """Show ``value`` in the element of its kind (``parts["line"]``, a uPlot chart, or ``parts["bars"]``,
+        a picture; added the first time it is needed), the other hidden; ``parts["chart"]`` is the one
+        shown."""
+        picture, title = self.as_picture(value), value.title or name
+        key, other = ("bars", "line") if picture else ("line", "bars")
+        handle = drawn.parts[key]
+        if handle is None:
+            with _gui_context(canvas.plots):
+                if picture:  # the panel's label is the title
+                    handle = canvas.gui.add_image(curve_image(replace(value, title="")), label=title,
+                                                  format="png", order=order)
+                else:
+                    handle = add_uplot(canvas.gui, value, title=title, order=order, name=name)
+            drawn.handles.append(handle)
+            drawn.parts[key] = handle
+        elif picture:
             handle.image = curve_image(replace(value, title=""))
             handle.label = title
         else:
             config = uplot_config(value, name)
             set_uplot(handle, data=config["data"], series=config["series"], scales=config["scales"],
                       axes=config["axes"], title=title)
+        if not handle.visible:
+            handle.visible = True
         _set_order(handle, order)
-        return True
+        hidden = drawn.parts[other]
+        if hidden is not None and hidden.visible:
+            hidden.visible = False
+        drawn.parts["picture"], drawn.parts["chart"] = picture, handle
 
 
 def uplot_config(curve: Curve, name: str = "") -> dict[str, Any]:

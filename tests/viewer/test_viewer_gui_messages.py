@@ -126,14 +126,22 @@ def test_new_values_change_the_pictures_and_charts_in_place(server, gui_messages
     assert len(chart.data) == 3 and len(chart.data[0]) == 6  # x and two series of 6 points
 
 
-def test_a_curve_turned_into_bars_is_the_only_element_replaced(server, gui_messages):
+def test_a_curve_turned_into_bars_and_back_hides_an_element_and_removes_none(server, gui_messages):
     drawer = StateDrawer(Canvas(scene=server.scene, gui=server.gui))
     drawer.sync({"c": Curve(np.arange(4.0), np.arange(4.0))})
     line = drawer.drawn["c"].parts["chart"]
-    assert isinstance(line, viser.GuiUplotHandle)
-    drawer.sync({"c": Curve(np.arange(4.0), np.arange(4.0), kind="bar")})
-    assert isinstance(drawer.drawn["c"].parts["chart"], viser.GuiImageHandle)
-    assert gui_messages.removed() == [line._impl.uuid]
+    assert isinstance(line, viser.GuiUplotHandle) and line.visible
+    drawer.sync({"c": Curve(np.arange(4.0), np.arange(4.0) + 1.0)})  # a preview updates the chart, then
+    drawer.sync({"c": Curve(np.arange(4.0), np.arange(4.0), kind="bar")})  # the result is a bar chart
+    bars = drawer.drawn["c"].parts["chart"]
+    assert isinstance(bars, viser.GuiImageHandle) and bars.visible and not line.visible
+    drawer.sync({"c": Curve(np.arange(5.0), np.arange(5.0))})  # a line again: the same chart, shown
+    assert drawer.drawn["c"].parts["chart"] is line and line.visible and not bars.visible
+    assert len(line.data[0]) == 5
+    assert gui_messages.removed() == [] and gui_messages.created() == [line._impl.uuid, bars._impl.uuid]
+    drawer.sync({})  # the value gone: both go, neither updated after
+    assert sorted(gui_messages.removed()) == sorted([line._impl.uuid, bars._impl.uuid])
+    assert gui_messages.updates_of_the_removed() == []
 
 
 def test_a_value_gone_is_removed_once_and_never_updated_after(server, gui_messages):
