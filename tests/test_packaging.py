@@ -62,7 +62,10 @@ def test_readme_urls_are_the_serve_defaults():
     defaults = {p.name: p.default for p in serve.params}
     assert defaults == {"host": "127.0.0.1", "port": 8000, "viewer_port": 8080, "data_root": None,
                         "unsafe_sandbox": False,  # the sandbox is on unless the operator says otherwise
-                        "no_warmup": False}  # and the fast kernels compile ahead in the background
+                        "no_warmup": False,  # and the fast kernels compile ahead in the background
+                        # one process that grades, as a lone server (README "Behind a proxy" for more)
+                        "workers": 1, "worker_id": None, "peers": None, "no_grading": False,
+                        "trust_forwarded_for": False}
 
 
 def test_pyproject_pins_torch_and_names_the_console_script():
