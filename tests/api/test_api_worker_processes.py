@@ -107,7 +107,7 @@ class Proxy:
                 self.end_headers()
                 self.wfile.write(body)
 
-            do_GET = do_POST = do_DELETE = _forward
+            do_GET = do_POST = do_PUT = do_DELETE = _forward
 
             def log_message(self, *args) -> None:
                 pass
@@ -176,6 +176,9 @@ def test_two_workers_share_submissions_route_sessions_and_lose_nothing_when_kill
         for name, url in urls.items():
             health = wait_until(lambda url=url: get_json(url + "/api/health"), 120, f"worker at {url}")
             assert (health["worker"], health["grading"]) == (name, name == "w0")
+
+        answered = {request(proxy.url + "/api/health")[1]["x-vision-lab-worker"] for _ in range(2)}
+        assert answered == {"w0", "w1"}  # the proxy spreads what is not a session's
 
         # sessions: made on one worker, sticky to it
         status, headers, body = request(proxy.url + "/api/sessions", "POST", json.dumps(

@@ -43,7 +43,9 @@ def test_a_session_lives_on_its_worker_and_another_worker_answers_421_naming_it(
                        w1.post(f"/api/sessions/{session}/run-until/mean_intensity", json={}),
                        w1.post(f"/api/sessions/{session}/reset"), w1.post(f"/api/sessions/{session}/cancel"),
                        w1.get(f"/api/sessions/{session}/events"),
-                       w1.get(f"/api/sessions/{session}/values/images")]
+                       w1.get(f"/api/sessions/{session}/values/images"),
+                       w1.put(f"/api/sessions/{session}/values/images", content=b"{}",
+                              headers={"Content-Type": "application/json"})]
         for response in misdirected:
             assert response.status_code == 421, response.text
             assert response.headers["x-vision-lab-worker"] == "w1"
