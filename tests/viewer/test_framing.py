@@ -31,9 +31,14 @@ LIGHT = {"diffusion": {"train_denoiser": {"iterations": 150, "hidden": 32, "laye
                   "train_nerf": {"method": "grid", "grid_resolution": 32, "iterations": 120,
                                  "budget_seconds": 0.0},
                   "render_path": {"frames": 4, "scale": 0.3},
-                  "extract_mesh": {"resolution": 32, "level": 2.0}}}
-OPTIONS = {"sfm": {"num_views": 8}, "nerf": {"train_views": 6, "test_views": 2}}
-MODULES = ("calibration", "epipolar", "stereo", "sfm", "texture", "diffusion", "nerf")
+                  "extract_mesh": {"resolution": 32, "level": 2.0}},
+         "splatting": {"initialize_gaussians": {"points": 300},
+                       "train_splats": {"iterations": 30, "budget_seconds": 0.0, "densify_from": 10,
+                                        "densify_every": 10},
+                       "render_path": {"frames": 4, "scale": 0.3}}}
+OPTIONS = {"sfm": {"num_views": 8}, "nerf": {"train_views": 6, "test_views": 2},
+           "splatting": {"train_views": 6, "test_views": 2}}
+MODULES = ("calibration", "epipolar", "stereo", "sfm", "texture", "diffusion", "nerf", "splatting")
 
 
 def extent_on_canvas(points: np.ndarray, pose: CameraPose,
