@@ -75,8 +75,8 @@ async def lessons_lifespan(app: FastAPI) -> AsyncIterator[None]:
     if service is None and _database_exists():
         service = LessonService.from_env()
         app.state.lesson_service = service
-    if service is not None and grades_here(app):
-        service.start()
+    if service is not None:
+        service.start(dispatch=grades_here(app))
     try:
         yield
     finally:
@@ -101,8 +101,8 @@ def get_lesson_service(request: Request) -> LessonService:
     if service is None:
         service = LessonService.from_env()
         request.app.state.lesson_service = service
-    if not service.started and grades_here(request.app):
-        service.start()
+    if not service.started:
+        service.start(dispatch=grades_here(request.app))
     return service
 
 

@@ -103,7 +103,7 @@ class LessonService:
                 limits = self.catalog.get(lesson).limits
         return DEADLINE_FACTOR * limits.total_timeout_s + DEADLINE_MARGIN_S
 
-    def start(self) -> int:
+    def start(self, *, dispatch: bool = True) -> int:
         """Remove what a crash left in the temporary folder, requeue what a killed server left running, check
         the sandbox (when grading runs in this process; a ``vision-lab worker`` checks its own) and start
         the grading cluster and its dispatcher; returns how many were requeued.
@@ -111,24 +111,36 @@ class LessonService:
         Without a working sandbox (:func:`lab.lessons.isolation.check`) no worker starts: queued
         submissions stay queued (nothing is lost or scored 0) and :meth:`submit` answers
         :class:`~lab.lessons.isolation.SandboxUnavailable` (HTTP 503) naming the fix.
+
+        ``dispatch=False`` (an API worker that leaves grading to another process on the same database,
+        ``vision-lab serve --no-grading``): only the sandbox check, so :meth:`submit` refuses exactly
+        where the grading process would; nothing is requeued, removed or claimed.
         """
         if self.started:
+            return 0
+        if not dispatch:
+            self._check_sandbox()
+            self.started = True
             return 0
         removed = remove_stale_workdirs()
         if removed:
             log.info("removed %d submission folders left by a crash", removed)
         requeued = self.queue.requeue_running()
         register(self.queue, self.catalog)  # jobs run in this process use the server's own objects
+        self._check_sandbox()
+        if self.sandbox_problem is None:
+            self.pool.start()
+        self.started = True
+        return requeued
+
+    def _check_sandbox(self) -> None:
+        """Probe the sandbox when grading runs on this machine (a problem: :attr:`sandbox_problem`)."""
         if self.needs_sandbox and self.cluster.scheduler is None:
             try:
                 isolation.check(isolation.default_isolation())
             except isolation.SandboxUnavailable as exc:
                 self.sandbox_problem = exc.reason
                 log.warning("grading is off: %s", exc.reason)
-        if self.sandbox_problem is None:
-            self.pool.start()
-        self.started = True
-        return requeued
 
     def stop(self) -> None:
         self.pool.stop()
