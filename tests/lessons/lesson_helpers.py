@@ -64,3 +64,73 @@ def wait_done(client, submission_id: str, timeout: float = 30.0) -> dict:
             return body
         time.sleep(0.05)
     raise AssertionError(f"submission {submission_id} not graded in {timeout} s")
+
+
+def toy_lessons_that_fork(folder, processes: int = 4):
+    """A lessons folder holding a copy of the toy lesson whose sandbox may start ``processes`` processes (by
+    default a submission cannot fork at all, and a test of what its daemons leave behind proves nothing)."""
+    import shutil
+
+    shutil.copytree(FIXTURES / "lessons" / "00-toy", folder / "00-toy")
+    tasks = folder / "00-toy" / "tasks.toml"
+    tasks.write_text(tasks.read_text().replace("[limits]\n", f"[limits]\nprocesses = {processes}\n", 1))
+    return folder
+
+
+def host_processes_with(text: str) -> list[int]:
+    """Host processes whose command line (arguments joined by NUL) holds ``text``."""
+    from pathlib import Path
+
+    found = []
+    for entry in Path("/proc").iterdir():
+        if entry.name.isdigit():
+            try:
+                if text.encode() in (entry / "cmdline").read_bytes():
+                    found.append(int(entry.name))
+            except OSError:
+                pass
+    return found
+
+
+def host_processes_left(text: str, *, within_s: float = 15.0) -> list[int]:
+    """Host processes whose command line holds ``text``, once the kernel has had ``within_s`` to tear a
+    namespace down (its processes are killed when its pid 1 ends, not at the instant the grader returns)."""
+    import time
+
+    deadline = time.monotonic() + within_s
+    while host_processes_with(text) and time.monotonic() < deadline:
+        time.sleep(0.05)
+    return host_processes_with(text)
+
+
+def unique_sleep() -> tuple[str, str]:
+    """``(seconds, cmdline)``: a ``sleep`` duration no other process on the machine uses (a shared machine's
+    shells run plain ``sleep 300``s), and the command line text of ``sleep <seconds>`` to look for."""
+    import secrets
+
+    seconds = f"300.{secrets.randbelow(10**6):06d}"
+    return seconds, f"sleep\x00{seconds}\x00"
+
+
+class HostWatch:
+    """Records the host processes whose command line holds ``text`` while it runs (a thread polling /proc)."""
+
+    def __init__(self, text: str) -> None:
+        import threading
+
+        self.text = text
+        self.seen: set[int] = set()
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._run, daemon=True)
+
+    def _run(self) -> None:
+        while not self._stop.wait(0.02):
+            self.seen.update(host_processes_with(self.text))
+
+    def __enter__(self) -> HostWatch:
+        self._thread.start()
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self._stop.set()
+        self._thread.join(timeout=10)

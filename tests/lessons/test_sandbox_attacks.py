@@ -11,9 +11,9 @@ nothing outliving grading).
 from __future__ import annotations
 
 import os
-import signal
 import socket
 import sqlite3
+import subprocess
 import sys
 import tempfile
 import time
@@ -30,7 +30,8 @@ from lab.lessons.sandbox import Sandbox, SubmissionFailure
 from lab.lessons.service import LessonService
 from lab.lessons.store import SubmissionQueue
 
-from lesson_helpers import FIXTURES, REPO, wait_done
+from lesson_helpers import (FIXTURES, REPO, HostWatch, host_processes_left, toy_lessons_that_fork, unique_sleep,
+                            wait_done)
 
 LIMITS = Limits(call_timeout_s=10.0, cpu_seconds=20.0, memory_mb=400.0, output_kb=8.0, result_mb=4.0,
                 file_size_mb=1.0, processes=4)
@@ -161,27 +162,6 @@ def attacks():
         yield box
 
 
-def _host_processes_with(text: str) -> list[int]:
-    found = []
-    for entry in Path("/proc").iterdir():
-        if entry.name.isdigit():
-            try:
-                if text.encode() in (entry / "cmdline").read_bytes():
-                    found.append(int(entry.name))
-            except OSError:
-                pass
-    return found
-
-
-def _host_processes_left(text: str, *, within_s: float = 15.0) -> list[int]:
-    """Host processes whose command line holds ``text``, once the kernel has had ``within_s`` to tear a
-    namespace down (its processes are killed when its pid 1 ends, not at the instant the grader returns)."""
-    deadline = time.monotonic() + within_s
-    while _host_processes_with(text) and time.monotonic() < deadline:
-        time.sleep(0.05)
-    return _host_processes_with(text)
-
-
 def test_with_the_hook_off_the_child_is_unprivileged_alone_and_sees_no_host(attacks):
     facts = attacks.call("whoami").value
     assert facts["uid"] != 0 and facts["euid"] != 0 and facts["gid"] != 0
@@ -256,7 +236,7 @@ def test_nothing_it_starts_outlives_it(attacks):
     tag = f"{time.time() % 1000 + 1000:.6f}"
     attacks.call("daemon", (tag,))
     attacks.close()
-    assert _host_processes_left(tag) == []
+    assert host_processes_left(tag) == []
 
 
 def test_fork_bombs_stop_at_the_process_limit(attacks):
@@ -292,7 +272,7 @@ def test_the_reference_cannot_be_imported_with_the_hook_off(calibration_lesson):
 
 # --- through the REST service ---------------------------------------------------------------------
 SERVICE_ATTACK = HOOK_OFF + r'''
-import os, signal, sqlite3, glob
+import os, signal, sqlite3, glob, time
 import numpy as np
 
 def make_noisy(images, *, sigma=0.05, rng):
@@ -311,8 +291,9 @@ def make_noisy(images, *, sigma=0.05, rng):
             connection.commit()
         except Exception as exc:
             print("attach refused", exc)
-    os.system("touch MARKER; sleep 300 &")
+    os.system("touch MARKER; sleep DAEMON_SECONDS &")
     signal.pidfd_send_signal(os.pidfd_open(os.getppid()), signal.SIGKILL)
+    time.sleep(0.5)  # the test sees its daemon on the host meanwhile: the check below can fail
     return images
 
 def mean_intensity(noisy, *, scale=1):
@@ -325,22 +306,33 @@ def test_over_rest_an_attack_scores_zero_and_changes_nothing_else(tmp_path, monk
     database = tmp_path / "db.sqlite"
     marker = Path(tempfile.gettempdir()) / MARKER
     marker.unlink(missing_ok=True)
-    service = LessonService(catalog=LessonCatalog(FIXTURES / "lessons"), queue=SubmissionQueue(f"sqlite:///{database}"),
+    lessons = toy_lessons_that_fork(tmp_path / "lessons", LIMITS.processes)  # else it cannot start a daemon
+    service = LessonService(catalog=LessonCatalog(lessons), queue=SubmissionQueue(f"sqlite:///{database}"),
                             poll_s=0.1, instructor_token="token-that-must-stay-secret")
+    # its daemon is told from every other process on the machine by a duration of its own: a plain "sleep 300"
+    # (a shell of someone else on a shared machine; here a decoy) is not the sandbox's leftover
+    seconds, daemon = unique_sleep()
     attack = SERVICE_ATTACK.replace("DATABASES", repr([str(database), str(database.resolve())])) \
-        .replace("MARKER", str(marker))
-    with TestClient(build_app(service)) as client:
-        victim = _submit(client, (FIXTURES / "lessons" / "00-toy" / "starter.py").read_text())
-        victim_done = wait_done(client, victim)
-        attacker_done = wait_done(client, _submit(client, attack), timeout=60.0)
-        assert attacker_done["status"] == "done" and attacker_done["score"] == 0
-        assert wait_done(client, victim)["score"] == victim_done["score"] == 0
-        assert client.get("/api/lessons").status_code == 200
-        everything = client.get(f"/api/submissions/{victim}").text + client.get(
-            f"/api/lessons/00-toy/submissions", headers={"Authorization": "Bearer token-that-must-stay-secret"}).text
-        assert "token-that-must-stay-secret" not in everything + str(attacker_done)
-    assert not marker.exists()
-    assert _host_processes_left("sleep\x00300") == []
+        .replace("MARKER", str(marker)).replace("DAEMON_SECONDS", seconds)
+    decoy = subprocess.Popen(["sleep", "300"])
+    try:
+        with TestClient(build_app(service)) as client, HostWatch(daemon) as watch:
+            victim = _submit(client, (FIXTURES / "lessons" / "00-toy" / "starter.py").read_text())
+            victim_done = wait_done(client, victim)
+            attacker_done = wait_done(client, _submit(client, attack), timeout=60.0)
+            assert attacker_done["status"] == "done" and attacker_done["score"] == 0
+            assert watch.seen, "the attack's daemon never ran on the host: the check below would prove nothing"
+            assert host_processes_left(daemon) == []  # gone with its grading, the server still up
+            assert wait_done(client, victim)["score"] == victim_done["score"] == 0
+            assert client.get("/api/lessons").status_code == 200
+            everything = client.get(f"/api/submissions/{victim}").text + client.get(
+                f"/api/lessons/00-toy/submissions", headers={"Authorization": "Bearer token-that-must-stay-secret"}).text
+            assert "token-that-must-stay-secret" not in everything + str(attacker_done)
+        assert not marker.exists()
+        assert decoy.poll() is None  # what is not the attack's is left alone, and not mistaken for it
+    finally:
+        decoy.kill()
+        decoy.wait(timeout=10)
 
 
 def _submit(client, source: str) -> str:
