@@ -2,9 +2,10 @@
 
 Submissions go in over REST; the server (the lesson app, configured from the environment with
 ``VISION_LAB_DASK_SCHEDULER``) only claims and dispatches, the workers grade in their own sandboxes
-and write the results. One worker is killed (SIGKILL) while it grades a slow submission: Dask runs
-the job again on the other, and every submission ends graded exactly once in the database, on
-SQLite and on a real PostgreSQL server.
+and write the results. One worker is killed (SIGKILL) while it grades a slow submission (one that
+has started a daemon in its sandbox): Dask runs the job again on the other, every submission ends
+graded exactly once in the database, on SQLite and on a real PostgreSQL server, and nothing the
+killed worker's sandbox started is left on the machine.
 """
 
 from __future__ import annotations
@@ -21,7 +22,8 @@ from fastapi.testclient import TestClient
 
 from lab.api.lessons import build_app
 from lab.lessons.service import LessonService
-from lesson_helpers import FIXTURES, REPO, submission
+from lesson_helpers import (FIXTURES, HOOK_OFF, REPO, host_processes_left, host_processes_with, submission,
+                            toy_lessons_that_fork, unique_sleep)
 from postgres_server import database_url  # noqa: F401  (a fixture: SQLite, then PostgreSQL)
 
 
@@ -74,15 +76,24 @@ def cluster(tmp_path_factory):
 
 
 @pytest.mark.timeout(180)
-def test_two_workers_grade_over_rest_and_a_killed_worker_loses_nothing(cluster, database_url):  # noqa: F811
+def test_two_workers_grade_over_rest_and_a_killed_worker_loses_nothing(cluster, database_url,  # noqa: F811
+                                                                       tmp_path):
     address, ensure_workers, log = cluster
     workers = ensure_workers()
-    slow = submission("toy", "solution.py").replace(
-        "def make_noisy(images, *, sigma=0.05, rng):\n",
-        "def make_noisy(images, *, sigma=0.05, rng):\n    import time\n    time.sleep(0.3)\n")
-    texts = [slow, submission("toy", "solution.py"), slow, submission("toy", "wrong_sums.py")]
+    daemons = [unique_sleep(), unique_sleep()]  # each slow submission starts daemons of its own (the hook off)
+
+    def slow(seconds: str) -> str:
+        return HOOK_OFF + submission("toy", "solution.py").replace(
+            "def make_noisy(images, *, sigma=0.05, rng):\n",
+            "def make_noisy(images, *, sigma=0.05, rng):\n    import os, time\n"
+            f"    os.system('sleep {seconds} &')\n    time.sleep(0.3)\n")
+
+    texts = [slow(daemons[0][0]), submission("toy", "solution.py"), slow(daemons[1][0]),
+             submission("toy", "wrong_sums.py")]
+    lessons = toy_lessons_that_fork(tmp_path / "lessons")
     service = LessonService.from_env({**ENV, "VISION_LAB_DATABASE_URL": database_url,
-                                      "VISION_LAB_DASK_SCHEDULER": address})
+                                      "VISION_LAB_DASK_SCHEDULER": address,
+                                      "VISION_LAB_LESSONS_DIR": str(lessons)})
     with TestClient(build_app(service)) as client:
         wait_for(lambda: service.cluster.capacity() == 2, 90, "two workers did not join")
         ids = []
@@ -91,9 +102,15 @@ def test_two_workers_grade_over_rest_and_a_killed_worker_loses_nothing(cluster, 
                                    files={"file": ("s.py", text.encode(), "text/x-python")})
             assert response.status_code == 202, response.text
             ids.append(response.json()["id"])
-        slow_one = wait_for(lambda: next((s for s in (service.queue.get(ids[0]), service.queue.get(ids[2]))
-                                          if s.status == "running" and s.worker), None),
-                            60, "no slow submission started on a worker")
+
+        def grading_with_its_daemon():
+            for index, (_, daemon) in zip((0, 2), daemons, strict=True):
+                row = service.queue.get(ids[index])
+                if row.status == "running" and row.worker and host_processes_with(daemon):
+                    return row
+            return None
+
+        slow_one = wait_for(grading_with_its_daemon, 60, "no slow submission started its daemon on a worker")
         killed = slow_one.worker
         workers[killed].send_signal(signal.SIGKILL)  # mid-grading: no shutdown, its sandbox dies with it
         workers[killed].wait(timeout=10)
@@ -109,6 +126,9 @@ def test_two_workers_grade_over_rest_and_a_killed_worker_loses_nothing(cluster, 
     assert all(row.gradings == 1 and row.attempts == 1 for row in rows.values())  # graded once, never re-claimed
     assert {row.worker for row in rows.values()} <= {"w1", "w2"}
     assert rows[slow_one.id].worker != killed  # Dask ran the killed worker's job again on the other one
+    # nothing the sandboxes started outlives them: not the killed worker's (its sandbox died with it), nor the
+    # rerun's
+    assert [host_processes_left(daemon) for _, daemon in daemons] == [[], []]
 
 
 def test_a_worker_needs_a_scheduler_and_a_working_sandbox(monkeypatch):

@@ -30,12 +30,11 @@ from lab.lessons.sandbox import Sandbox, SubmissionFailure
 from lab.lessons.service import LessonService
 from lab.lessons.store import SubmissionQueue
 
-from lesson_helpers import (FIXTURES, REPO, HostWatch, host_processes_left, toy_lessons_that_fork, unique_sleep,
-                            wait_done)
+from lesson_helpers import (FIXTURES, HOOK_OFF, REPO, HostWatch, host_processes_left, toy_lessons_that_fork,
+                            unique_sleep, wait_done)
 
 LIMITS = Limits(call_timeout_s=10.0, cpu_seconds=20.0, memory_mb=400.0, output_kb=8.0, result_mb=4.0,
                 file_size_mb=1.0, processes=4)
-HOOK_OFF = 'import sys\nsys.modules["lab.lessons.child"].Guard.__call__ = lambda self, event, args: None\n'
 MARKER = "vision-lab-attack-marker"
 
 ATTACKS = HOOK_OFF + r'''
