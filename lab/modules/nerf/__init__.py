@@ -49,8 +49,10 @@ State names:
     test_renders    ImageSet        every held-out view rendered
     test_depth      (V, H, W)       their expected depths
     test_opacity    (V, H, W)       their opacities
+    held_out_cameras Cameras        the held-out cameras carrying ``test_renders`` (click a pixel: its ray)
     rendered, depth_map, opacity_map  Image   one held-out view, its depth (near black, far white), opacity
     ray_weights     Curve           the weights w_i along one pixel's ray
+    ray_samples     PointCloud      that ray's samples in 3D, grey (weight 0) to red (its largest weight)
     path_frames     ImageSet        novel views along an orbit about the scene centre
     path_cameras    Cameras         their cameras (carrying ``path_frames``)
     mesh            Mesh            the density's level set, vertex-coloured (world units)
@@ -82,9 +84,9 @@ from lab.modules.nerf.values import EncodingConfig, FieldConfig, NerfCheckpoint,
 from lab.modules.nerf.warmup import CoordinateMLP, fit_image
 
 #: State names the viewer may read by name: the cameras and what they carry, the model and its bounds,
-#: the training preview, one view's depth and opacity, the orbit and the mesh.
+#: the training preview, one view's depth and opacity, the orbit, the mesh and the held-out cameras.
 VIEWS = ("cameras", "images", "test_cameras", "bounds", "model", "preview", "rendered", "depth_map",
-         "opacity_map", "path_cameras", "path_frames", "mesh")
+         "opacity_map", "path_cameras", "path_frames", "mesh", "held_out_cameras")
 
 PIPELINE = Pipeline.build(
     name="nerf",

@@ -23,7 +23,7 @@ import numpy as np
 import torch
 
 from lab.core import (Cameras, CapacityExceeded, Curve, Image, ImageSet, InvalidControl, InvalidValue, Mesh,
-                      Progress, Range, Segments3D, Warnings, metric, step_result)
+                      PointCloud, Progress, Range, Segments3D, Warnings, metric, step_result)
 from lab.modules.diffusion.training import single_threaded
 from lab.modules.nerf.encoding import encoding_size, positional_encoding
 from lab.modules.nerf.evaluate import image_psnr
@@ -397,19 +397,24 @@ class HeldOutResult:
     test_renders: ImageSet
     test_depth: np.ndarray
     test_opacity: np.ndarray
+    held_out_cameras: Cameras
     render_seconds: float = metric("time to render every held-out view", unit="s")
 
 
 def render_held_out(model: NerfCheckpoint | GridCheckpoint, test_cameras: Cameras, *,
                     device: str = "cpu") -> HeldOutResult:
     """Render every held-out view (no jitter; fine samples placed deterministically) for evaluation:
-    colour ``(H, W, 3)``, expected depth and opacity ``(H, W)`` per view (see :func:`render_view`)."""
+    colour ``(H, W, 3)``, expected depth and opacity ``(H, W)`` per view (see :func:`render_view`);
+    ``held_out_cameras`` are the held-out cameras carrying the renders (a click on a pixel of one runs
+    :func:`render_view` for its ray in the viewer)."""
     renderer = FieldRenderer(model, device)
     started = time.perf_counter()
     views = renderer.views(test_cameras)
     seconds = time.perf_counter() - started
     return HeldOutResult(ImageSet(tuple(Image(v.color, name=f"held-out {i}") for i, v in enumerate(views))),
-                         np.stack([v.depth for v in views]), np.stack([v.opacity for v in views]), seconds)
+                         np.stack([v.depth for v in views]), np.stack([v.opacity for v in views]),
+                         Cameras(test_cameras.K, test_cameras.R, test_cameras.t, test_cameras.width,
+                                 test_cameras.height, image="test_renders"), seconds)
 
 
 @step_result
@@ -420,6 +425,7 @@ class ViewResult:
     depth_map: Image
     opacity_map: Image
     ray_weights: Curve
+    ray_samples: PointCloud
     render_seconds: float = metric("time to render the view", unit="s")
 
 
@@ -429,7 +435,8 @@ def render_view(model: NerfCheckpoint | GridCheckpoint, test_cameras: Cameras, *
     """Render held-out camera ``view``: its colour, its depth map (expected termination depth
     ``sum w_i t_i``, the unabsorbed rest at far; shown from near = black to far = white) and opacity
     ``sum w_i`` (eq. 3), and the weights ``w_i`` along the ray through pixel ``(pixel_u, pixel_v)`` (-1: the
-    image centre), over the samples of the last pass.
+    image centre), over the samples of the last pass: plotted over depth (``ray_weights``) and drawn in 3D
+    (``ray_samples``: each sample's point, grey for weight 0 to red for the ray's largest weight).
 
     Args:
         view: the held-out camera.
@@ -455,10 +462,19 @@ def render_view(model: NerfCheckpoint | GridCheckpoint, test_cameras: Cameras, *
     t, w = renderer.ray(origins[0, index:index + 1], directions[0, index:index + 1])
     weights = Curve(t, w, title=f"weights along the ray of pixel ({u}, {v})", xlabel="depth t", ylabel="w_i",
                     labels=("w_i = T_i alpha_i",))
+    o, d = (a[0, index].double().cpu().numpy() for a in (origins, directions))
+    samples = PointCloud(o + t[:, None].astype(np.float64) * d, colors=weight_colors(w))
     near, far = renderer.model.bounds.near, renderer.model.bounds.far
     depth = np.clip((image.depth - near) / (far - near), 0.0, 1.0)
     return ViewResult(Image(image.color, name=f"held-out view {view}"), Image(depth, name="depth"),
-                      Image(np.clip(image.opacity, 0.0, 1.0), name="opacity"), weights, seconds)
+                      Image(np.clip(image.opacity, 0.0, 1.0), name="opacity"), weights, samples, seconds)
+
+
+def weight_colors(weights: np.ndarray) -> np.ndarray:
+    """``(S, 3)`` colours of samples by weight: grey (0.6) at 0 to red at the largest weight of the ray."""
+    w = np.asarray(weights, dtype=np.float64)
+    share = w / w.max() if w.size and w.max() > 0 else np.zeros_like(w)
+    return np.stack([0.6 + 0.4 * share, 0.6 * (1.0 - share), 0.6 * (1.0 - share)], axis=1)
 
 
 # ----------------------------------------------------------------------------------------------------

@@ -1,4 +1,4 @@
-"""Interactions of the NeRF module: training follows the browser's camera.
+"""Interactions of the NeRF module: training follows the browser's camera; a clicked pixel shows its ray.
 
 * **Training preview from your camera.** While ``train_nerf`` runs, every progress snapshot offers the
   run's :class:`~lab.modules.nerf.preview.FollowedPreview` (``Progress.values["preview_follower"]``). This
@@ -7,8 +7,14 @@
   is the field seen from where the student looks: coarse (32 px) while the camera moves, 64 px once it
   stands still, as nerfstudio's viewer renders. "Follow my camera" off: training view 0 again.
 
+* **A pixel's ray.** A click on a pixel of a held-out view's picture (on its camera frustum, drawn once
+  ``render_held_out`` ran: ``held_out_cameras`` carry ``test_renders``) runs the module's ``render_view`` for
+  that view and pixel: ``ray_weights`` plots the weights ``w_i`` over the ray's depths (Plots tab) and
+  ``ray_samples`` draws the samples in 3D, grey at weight 0 to red at the ray's largest (both drawn by the
+  generic renderers).
+
 The camera math is :func:`browser_cameras` (a viser camera as the lab's OpenCV :class:`Cameras`, tested
-directly); the class only wires it to viser and to the session's progress.
+directly) and :func:`clicked_pixel`; the classes only wire them to viser and to the session.
 """
 
 from __future__ import annotations
@@ -122,6 +128,37 @@ class TrainingCamera(Interaction):
         super().close()
 
 
+def clicked_pixel(pixel: np.ndarray, width: int, height: int) -> tuple[int, int]:
+    """The pixel ``(column, row)`` holding a click at picture coordinates ``(u, v)`` (0 at the picture's left
+    and top edges, ``width`` and ``height`` at the others), clamped into the image."""
+    u, v = float(pixel[0]), float(pixel[1])
+    return min(max(math.floor(u), 0), width - 1), min(max(math.floor(v), 0), height - 1)
+
+
+class RayOfPixel(Interaction):
+    """Click a held-out view's pixel: run ``render_view`` for it (its ray's samples and weights)."""
+
+    title = "Ray of a pixel"
+
+    def __init__(self, ctx: InteractionContext) -> None:
+        super().__init__(ctx)
+        self.track(ctx.gui.add_markdown(
+            "Click a pixel of a held-out view's picture (on its camera, once **render_held_out** ran): "
+            "**render_view** shows its ray, the weights w_i = T_i alpha_i over depth (plot *ray_weights*) "
+            "and the samples in 3D, grey at weight 0 to red at the largest (*ray_samples*)."))
+        self.last: tuple[int, int, int] | None = None
+
+    def pixel_clicked(self, image_name: str, view: int, pixel: np.ndarray) -> bool:
+        """Take clicks on ``test_renders`` (the held-out cameras' pictures) once there is a model."""
+        cameras = self.ctx.value("held_out_cameras")
+        if image_name != "test_renders" or cameras is None or self.ctx.value("model") is None:
+            return False
+        u, v = clicked_pixel(pixel, cameras.width, cameras.height)
+        self.last = (view, u, v)
+        self.ctx.run("render_view", {"view": view, "pixel_u": u, "pixel_v": v})
+        return True
+
+
 def _browser_camera(ctx: InteractionContext) -> Any | None:
     """The tab's viser camera handle (None for the server-wide scene): ``ctx.camera`` where the context
     carries it, else the camera of the client that owns the tab's scene."""
@@ -133,6 +170,6 @@ def _browser_camera(ctx: InteractionContext) -> Any | None:
     return camera
 
 
-INTERACTIONS: list[type[Interaction]] = [TrainingCamera]
+INTERACTIONS: list[type[Interaction]] = [TrainingCamera, RayOfPixel]
 
-__all__ = ["BROWSER_SIDE", "INTERACTIONS", "TrainingCamera", "browser_cameras"]
+__all__ = ["BROWSER_SIDE", "INTERACTIONS", "RayOfPixel", "TrainingCamera", "browser_cameras", "clicked_pixel"]

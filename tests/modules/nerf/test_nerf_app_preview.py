@@ -28,7 +28,7 @@ from lab.modules.nerf.preview import (FOLLOWER, MOVING_SIDE, STILL_SECONDS, Foll
 from lab.modules.nerf.rays import cameras_rays, scaled_cameras
 from lab.viewer.app import ClientView, ModuleCatalog
 from lab.viewer.interactions import interactions_for
-from lab.viewer.interactions.nerf import TrainingCamera, browser_cameras
+from lab.viewer.interactions.nerf import RayOfPixel, TrainingCamera, browser_cameras
 
 torch.set_num_threads(1)
 
@@ -189,7 +189,7 @@ class FakeCamera:
 
 def test_the_interaction_hands_the_camera_to_a_running_training(server):
     store = SessionStore(max_sessions=2)
-    assert interactions_for("nerf") == [TrainingCamera]
+    assert interactions_for("nerf") == [TrainingCamera, RayOfPixel]
     view = ClientView(server, store, ModuleCatalog([PIPELINE]), is_client=False, background=False)
     session = store.create(PIPELINE, "synthetic_object", {"train_views": 2, "test_views": 1})
     view.open_session(session)
