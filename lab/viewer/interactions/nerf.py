@@ -14,7 +14,8 @@
   generic renderers).
 
 The camera math is :func:`browser_cameras` (a viser camera as the lab's OpenCV :class:`Cameras`, tested
-directly) and :func:`clicked_pixel`; the classes only wire them to viser and to the session.
+directly); the click is :class:`~lab.viewer.pixel_click.HeldOutPixelClick`; the classes only wire them to
+viser and to the session.
 """
 
 from __future__ import annotations
@@ -29,6 +30,7 @@ import numpy as np
 from lab.core import Cameras, InvalidValue, Progress
 from lab.modules.nerf.preview import FOLLOWER, FollowedPreview
 from lab.viewer.interactions import Interaction, InteractionContext
+from lab.viewer.pixel_click import HeldOutPixelClick
 
 #: Longest side of the camera handed to the preview (it renders a smaller copy of it).
 BROWSER_SIDE = 256
@@ -128,35 +130,18 @@ class TrainingCamera(Interaction):
         super().close()
 
 
-def clicked_pixel(pixel: np.ndarray, width: int, height: int) -> tuple[int, int]:
-    """The pixel ``(column, row)`` holding a click at picture coordinates ``(u, v)`` (0 at the picture's left
-    and top edges, ``width`` and ``height`` at the others), clamped into the image."""
-    u, v = float(pixel[0]), float(pixel[1])
-    return min(max(math.floor(u), 0), width - 1), min(max(math.floor(v), 0), height - 1)
-
-
-class RayOfPixel(Interaction):
+class RayOfPixel(HeldOutPixelClick):
     """Click a held-out view's pixel: run ``render_view`` for it (its ray's samples and weights)."""
 
     title = "Ray of a pixel"
-
-    def __init__(self, ctx: InteractionContext) -> None:
-        super().__init__(ctx)
-        self.track(ctx.gui.add_markdown(
-            "Click a pixel of a held-out view's picture (on its camera, once **render_held_out** ran): "
+    text = ("Click a pixel of a held-out view's picture (on its camera, once **render_held_out** ran): "
             "**render_view** shows its ray, the weights w_i = T_i alpha_i over depth (plot *ray_weights*) "
-            "and the samples in 3D, grey at weight 0 to red at the largest (*ray_samples*)."))
-        self.last: tuple[int, int, int] | None = None
+            "and the samples in 3D, grey at weight 0 to red at the largest (*ray_samples*).")
 
-    def pixel_clicked(self, image_name: str, view: int, pixel: np.ndarray) -> bool:
-        """Take clicks on ``test_renders`` (the held-out cameras' pictures) once there is a model."""
+    def clickable(self) -> Cameras | None:
+        """The held-out cameras (carrying ``test_renders``) once a model is trained."""
         cameras = self.ctx.value("held_out_cameras")
-        if image_name != "test_renders" or cameras is None or self.ctx.value("model") is None:
-            return False
-        u, v = clicked_pixel(pixel, cameras.width, cameras.height)
-        self.last = (view, u, v)
-        self.ctx.run("render_view", {"view": view, "pixel_u": u, "pixel_v": v})
-        return True
+        return cameras if cameras is not None and self.ctx.value("model") is not None else None
 
 
 def _browser_camera(ctx: InteractionContext) -> Any | None:
@@ -172,4 +157,4 @@ def _browser_camera(ctx: InteractionContext) -> Any | None:
 
 INTERACTIONS: list[type[Interaction]] = [TrainingCamera, RayOfPixel]
 
-__all__ = ["BROWSER_SIDE", "INTERACTIONS", "RayOfPixel", "TrainingCamera", "browser_cameras", "clicked_pixel"]
+__all__ = ["BROWSER_SIDE", "INTERACTIONS", "RayOfPixel", "TrainingCamera", "browser_cameras"]

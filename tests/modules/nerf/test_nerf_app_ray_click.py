@@ -17,7 +17,8 @@ from lab.core import SessionStore
 from lab.modules.nerf import PIPELINE
 from lab.modules.nerf.steps import weight_colors
 from lab.viewer.app import ClientView, ModuleCatalog
-from lab.viewer.interactions.nerf import RayOfPixel, clicked_pixel
+from lab.viewer.interactions.nerf import RayOfPixel
+from lab.viewer.pixel_click import clicked_pixel
 
 torch.set_num_threads(1)
 
