@@ -40,8 +40,12 @@ _PREVIEW = """async () => {
     if (!box) continue;
     const img = box.querySelector('img');
     if (!img.src) continue;
-    const bytes = new Uint8Array(await (await fetch(img.src)).arrayBuffer());
-    return {label: label.textContent.trim(), data: Array.from(bytes)};
+    try {  // the picture may be replaced (its blob URL revoked) while it is read: read the next one then
+      const bytes = new Uint8Array(await (await fetch(img.src)).arrayBuffer());
+      return {label: label.textContent.trim(), data: Array.from(bytes)};
+    } catch (error) {
+      return null;
+    }
   }
   return null;
 }"""
