@@ -1,4 +1,5 @@
-"""Comparing the SfM steps' cameras with the truth: a similarity alignment (Umeyama 1991), then pose errors.
+"""Comparing the SfM steps' cameras with the truth: a similarity alignment (Umeyama 1991,
+:func:`lab.geometry.alignment.umeyama`), then pose errors.
 
 A reconstruction is known only up to a similarity (rotation, translation, scale), so the estimated
 cameras are first mapped onto the true ones (:func:`align_poses`); then the rotation error in
@@ -12,34 +13,8 @@ from typing import Any
 
 import numpy as np
 
+from lab.geometry.alignment import umeyama
 from lab.geometry.rotations import nearest_rotation, rotation_angle_deg
-
-
-def umeyama(source: np.ndarray, target: np.ndarray) -> tuple[float, np.ndarray, np.ndarray]:
-    """The similarity ``target ~ s Q source + d`` of least squared error (Umeyama 1991):
-    ``(s, Q (3, 3), d (3,))``.
-
-    Centre both sets, ``Sigma = T_c^T S_c / n``, ``U D V^T = svd(Sigma)``,
-    ``Q = U diag(1, 1, det(U V^T)) V^T``,
-    ``s = trace(diag(D) diag(1, 1, +-1)) / var(S)``, ``d = mean(T) - s Q mean(S)``. Corresponds to
-    scikit-image's ``SimilarityTransform.estimate`` (which calls ``_umeyama``).
-
-    Reference: S. Umeyama, "Least-squares estimation of transformation parameters between two point
-    patterns", TPAMI 13(4), 1991.
-    """
-    S = np.asarray(source, dtype=np.float64)
-    T = np.asarray(target, dtype=np.float64)
-    ms, mt = S.mean(axis=0), T.mean(axis=0)
-    Sc, Tc = S - ms, T - mt
-    sigma = Tc.T @ Sc / len(S)
-    U, D, Vt = np.linalg.svd(sigma)
-    sign = np.ones(3)
-    if np.linalg.det(U) * np.linalg.det(Vt) < 0:
-        sign[2] = -1.0
-    Q = U @ np.diag(sign) @ Vt
-    variance = np.mean(np.sum(Sc**2, axis=1))
-    s = float(np.sum(D * sign) / variance) if variance > 0 else 1.0
-    return s, Q, mt - s * Q @ ms
 
 
 def align_poses(R_est: np.ndarray, t_est: np.ndarray, R_true: np.ndarray,
