@@ -49,27 +49,30 @@ ENV = {**os.environ, "PYTHONPATH": os.pathsep.join([str(FIXTURES), str(REPO)]),
 
 @pytest.fixture(scope="module")
 def cluster(tmp_path_factory):
-    """A scheduler and ``ensure_workers()``: two ``vision-lab worker`` processes (killed ones replaced); the
-    workers know no database: each job names its own."""
+    """A scheduler and ``ensure_workers()``: two live ``vision-lab worker`` processes, name -> process (a
+    killed one is replaced at once by a worker of a new name, which joins while the test goes on); the
+    workers know no database: each job names its own. Both start with the module, beside the scheduler."""
     log = open(tmp_path_factory.mktemp("cluster") / "cluster.log", "w")  # noqa: SIM115  (closed below)
     port = free_port()
     address = f"tcp://127.0.0.1:{port}"
     scheduler = subprocess.Popen([sys.executable, "-m", "distributed.cli.dask_scheduler", "--host", "127.0.0.1",
                                   "--port", str(port), "--no-dashboard"], env=ENV, stdout=log, stderr=log)
-    workers: dict[str, subprocess.Popen] = {}
+    started: dict[str, subprocess.Popen] = {}
 
     def ensure_workers() -> dict[str, subprocess.Popen]:
-        for name in ("w1", "w2"):
-            if name not in workers or workers[name].poll() is not None:
-                workers[name] = subprocess.Popen(
-                    [sys.executable, "-c", "from lab.cli import app; app()", "worker", address, "--name", name,
-                     "--host", "127.0.0.1"], env=ENV, cwd=str(REPO), stdout=log, stderr=log)
-        return workers
+        live = {name: process for name, process in started.items() if process.poll() is None}
+        while len(live) < 2:
+            name = f"w{len(started) + 1}"
+            live[name] = started[name] = subprocess.Popen(
+                [sys.executable, "-c", "from lab.cli import app; app()", "worker", address, "--name", name,
+                 "--host", "127.0.0.1"], env=ENV, cwd=str(REPO), stdout=log, stderr=log)
+        return live
 
+    ensure_workers()
     try:
         yield address, ensure_workers, log.name
     finally:
-        for process in [*workers.values(), scheduler]:
+        for process in [*started.values(), scheduler]:
             process.kill()  # test processes: no graceful shutdown needed (a sandbox dies with its worker)
             process.wait(timeout=15)
         log.close()
@@ -80,7 +83,7 @@ def test_two_workers_grade_over_rest_and_a_killed_worker_loses_nothing(cluster, 
                                                                        tmp_path):
     address, ensure_workers, log = cluster
     workers = ensure_workers()
-    daemons = [unique_sleep(), unique_sleep()]  # each slow submission starts daemons of its own (the hook off)
+    daemons = [unique_sleep(), unique_sleep()]  # each slow submission starts its own daemons
 
     def slow(seconds: str) -> str:
         return HOOK_OFF + submission("toy", "solution.py").replace(
@@ -114,6 +117,7 @@ def test_two_workers_grade_over_rest_and_a_killed_worker_loses_nothing(cluster, 
         killed = slow_one.worker
         workers[killed].send_signal(signal.SIGKILL)  # mid-grading: no shutdown, its sandbox dies with it
         workers[killed].wait(timeout=10)
+        names = {*workers, *ensure_workers()}  # its replacement boots meanwhile (the next test's 2nd worker)
 
         def graded():
             bodies = [client.get(f"/api/submissions/{i}").json() for i in ids]
@@ -124,7 +128,7 @@ def test_two_workers_grade_over_rest_and_a_killed_worker_loses_nothing(cluster, 
     assert [b["score"] for b in bodies] == [6.0, 6.0, 6.0, 2.0]
     rows = {i: service.queue.get(i) for i in ids}
     assert all(row.gradings == 1 and row.attempts == 1 for row in rows.values())  # graded once, never re-claimed
-    assert {row.worker for row in rows.values()} <= {"w1", "w2"}
+    assert {row.worker for row in rows.values()} <= names
     assert rows[slow_one.id].worker != killed  # Dask ran the killed worker's job again on the other one
     # nothing the sandboxes started outlives them: not the killed worker's (its sandbox died with it), nor the
     # rerun's

@@ -79,7 +79,7 @@ def test_killed_during_grading_restarts_and_grades_every_submission(tmp_path):
     database = f"sqlite:///{tmp_path / 'submissions.sqlite'}"
     slow = submission("toy", "solution.py").replace(
         "def make_noisy(images, *, sigma=0.05, rng):\n",
-        "def make_noisy(images, *, sigma=0.05, rng):\n    import time\n    time.sleep(0.7)\n")
+        "def make_noisy(images, *, sigma=0.05, rng):\n    import time\n    time.sleep(0.3)\n")
     texts = [slow, submission("toy", "solution.py"), slow, submission("toy", "wrong_sums.py")]
     with open(tmp_path / "server.log", "w") as log:
         server = Server(database, free_port(), log)
