@@ -8,6 +8,7 @@ preview follows the page's camera, whose canvas is not square), and show the obj
 background: the camera's frame and the depths are right). Then the mouse wheel zooms the page's camera in,
 as a student does: once the camera stands still again, the object must cover a clearly larger share of the
 preview than before (the model alone, trained further from the same camera, does not grow the object).
+A click on a pixel of a held-out picture shows that pixel's ray (its samples drawn, render_view run for it).
 Screenshots in ``test-output/e2e-nerf-preview/``.
 """
 
@@ -126,5 +127,54 @@ def test_training_preview_follows_the_page_camera(served_lab, shared_browser):
         finally:
             runner.join(timeout=120)
         assert trained.get("status") == "ok", trained
+    finally:
+        page.close()
+
+
+HELD_OUT = "/lab/held_out_cameras/camera_000"
+QUICK_GRID = {"method": "grid", "grid_resolution": 32, "batch_rays": 1024, "iterations": 150,
+              "budget_seconds": 0.0, "preview_every": 150}
+
+
+def test_a_click_on_a_held_out_picture_shows_its_ray(served_lab, shared_browser):
+    """After render_held_out, a click on a pixel of held-out view 0's picture runs render_view for that
+    pixel: the page then draws the ray's samples (``/lab/ray_samples``) and the session's render_view ran
+    with the clicked pixel (within what one screen pixel spans of the picture)."""
+    from test_e2e_frustum_click import picture_point
+
+    OUTPUT.mkdir(parents=True, exist_ok=True)
+    api_url, viewer_url = served_lab
+    lab_api = LabAPI(api_url)
+    session = lab_api.create("nerf", "synthetic_object", {"train_views": 4, "test_views": 1})
+    for step, controls in (("generate_rays", {}), ("encode_positions", {}), ("train_nerf", QUICK_GRID),
+                           ("render_held_out", {})):
+        lab_api.run(session, step, controls)
+    page = shared_browser.new_page(viewport={"width": 1400, "height": 900})
+    try:
+        page.goto(f"{viewer_url}/?session={session}", timeout=WAIT_MS)
+        page.wait_for_function("() => window.__viserSceneTree !== undefined && window.__viserMutable !== "
+                               "undefined", timeout=WAIT_MS)
+        view = ViewerPage(page)
+        view.eventually(lambda: view.node_type(HELD_OUT), lambda kind: kind is not None)
+        view.dismiss_software_rendering_notice()
+        page.get_by_text("Ray of a pixel").first.wait_for(timeout=WAIT_MS)
+        point = picture_point(view, HELD_OUT, 100, 100)
+        us, vs = np.meshgrid(np.linspace(20, 80, 13), np.linspace(20, 80, 13))
+        pixels = np.column_stack([us.ravel(), vs.ravel()])
+        view.settle(HELD_OUT, point(pixels[:1]))
+        screen = view.screen_points(HELD_OUT, point(pixels))
+        free = view.on_canvas(screen)
+        assert free.any(), f"no pixel of held-out view 0's picture is on the free canvas: {screen.round()}"
+        best = int(np.argmin(np.where(free, np.linalg.norm(pixels - 50.0, axis=1), np.inf)))
+        page.mouse.click(float(screen[best][0]), float(screen[best][1]))
+        view.eventually(lambda: view.node_type("/lab/ray_samples"), lambda kind: kind is not None)
+        page.screenshot(path=str(OUTPUT / "ray-click.png"))
+        assert view.node_type("/lab/ray_samples") is not None, "no ray samples drawn after the click"
+        ran = [r for r in lab_api.history(session) if r["step"] == "render_view"]
+        assert ran, "the click ran no render_view"
+        step = view.screen_points(HELD_OUT, point(pixels[best] + np.array([[0.0, 0.0], [1.0, 0.0]])))
+        tolerance = max(1.0, 1.5 / max(float(np.linalg.norm(step[1] - step[0])), 1e-6))
+        clicked = np.array([ran[-1]["params"]["pixel_u"], ran[-1]["params"]["pixel_v"]], dtype=np.float64)
+        np.testing.assert_allclose(clicked, pixels[best], atol=tolerance)
     finally:
         page.close()
