@@ -32,14 +32,83 @@ T_MIN = 1e-4
 SLACK = 1e-3
 
 
+def alpha_floor_exponents(opacities: np.ndarray) -> np.ndarray:
+    """``log(1 / (255 o)) - SLACK`` (N,) float64: an exponent below which a Gaussian of opacity ``o`` has
+    alpha surely under 1/255 (positive: everywhere); the ellipse of its footprint is ``d^T conic d <= -2``
+    times it."""
+    with np.errstate(divide="ignore"):
+        return np.log(1.0 / 255.0) - np.log(np.maximum(opacities.astype(np.float64), 1e-300)) - SLACK
+
+
 def pack_pairs(ids: np.ndarray, means2d: np.ndarray, conics: np.ndarray, opacities: np.ndarray) -> np.ndarray:
     """``(pairs, 7)`` in the dtype of ``means2d``: per listed Gaussian ``ids[k]`` its mean (2), conic (3),
-    opacity and ``log(1 / (255 o)) - SLACK`` (an exponent below which its alpha is surely under 1/255), laid
+    opacity and :func:`alpha_floor_exponents` (an exponent below which its alpha is surely under 1/255), laid
     out in list order so the kernels read them one after the other."""
-    with np.errstate(divide="ignore"):
-        skip = np.log(1.0 / 255.0) - np.log(np.maximum(opacities.astype(np.float64), 1e-300)) - SLACK
+    skip = alpha_floor_exponents(opacities)
     table = np.concatenate([means2d, conics, opacities[:, None], skip[:, None].astype(means2d.dtype)], axis=1)
     return np.ascontiguousarray(table[ids])
+
+
+@kernel
+def _touches_box(mx: float, my: float, ca: float, cb: float, cc: float, limit: float, x0: float, x1: float,
+                 y0: float, y1: float) -> bool:
+    """Whether the ellipse ``d^T [[ca, cb], [cb, cc]] d <= limit`` about ``(mx, my)`` (``d = (mx - px,
+    my - py)``) reaches the box ``x0 <= px <= x1``, ``y0 <= py <= y1``: the centre is in it, or the convex
+    quadratic's least value on one of its four sides (the side's minimizer, clamped to it) is within
+    ``limit``. Not positive definite, or not finite: True (the kernels' per-pixel test decides)."""
+    if limit < 0.0:
+        return False
+    if not (ca > 0.0 and cc > 0.0 and ca * cc - cb * cb > 0.0):
+        return True
+    if x0 <= mx <= x1 and y0 <= my <= y1:
+        return True
+    best = np.inf
+    for edge in (y0, y1):
+        dy = my - edge
+        dx = min(max(-cb * dy / ca, mx - x1), mx - x0)
+        best = min(best, ca * dx * dx + 2.0 * cb * dx * dy + cc * dy * dy)
+    for edge in (x0, x1):
+        dx = mx - edge
+        dy = min(max(-cb * dx / cc, my - y1), my - y0)
+        best = min(best, ca * dx * dx + 2.0 * cb * dx * dy + cc * dy * dy)
+    return not best > limit * (1.0 + 1e-9) + 1e-9       # NaN: True
+
+
+@kernel
+def _bin_kernel(order: np.ndarray, rects: np.ndarray, means2d: np.ndarray, conics: np.ndarray,
+                limits: np.ndarray, cull: bool, tile_size: int, width: int, height: int, tiles_x: int,
+                ranges: np.ndarray, ids: np.ndarray, keep: np.ndarray) -> int:
+    """List the Gaussians ``order`` (nearest first) in each tile of their rectangles ``rects`` (N, 4)
+    (with ``cull``, only the tiles whose pixel centres their ellipse ``d^T conic d <= limit`` reaches,
+    :func:`_touches_box`): a counting sort by tile, so each tile's list keeps the depth order. Fills
+    ``ranges`` (tiles, 2) and ``ids[:pairs]`` (``keep``: scratch of the rectangles' total area); returns
+    the pairs listed."""
+    counts = np.zeros(len(ranges), np.int64)
+    n = 0
+    for g in order:
+        for ty in range(rects[g, 1], rects[g, 3]):
+            for tx in range(rects[g, 0], rects[g, 2]):
+                keep[n] = not cull or _touches_box(
+                    means2d[g, 0], means2d[g, 1], conics[g, 0], conics[g, 1], conics[g, 2], limits[g],
+                    tx * tile_size, min(width, (tx + 1) * tile_size) - 1,
+                    ty * tile_size, min(height, (ty + 1) * tile_size) - 1)
+                counts[ty * tiles_x + tx] += keep[n]
+                n += 1
+    total = 0
+    for tile in range(len(ranges)):
+        ranges[tile, 0] = total
+        total += counts[tile]
+        ranges[tile, 1] = ranges[tile, 0]
+    n = 0
+    for g in order:
+        for ty in range(rects[g, 1], rects[g, 3]):
+            for tx in range(rects[g, 0], rects[g, 2]):
+                if keep[n]:
+                    tile = ty * tiles_x + tx
+                    ids[ranges[tile, 1]] = g
+                    ranges[tile, 1] += 1
+                n += 1
+    return total
 
 
 @kernel
@@ -65,6 +134,23 @@ def _row_span(mx: float, my: float, ca: float, cb: float, cc: float, limit: floa
         return x0, x1
     first = x0 if low < x0 else (x1 if low > x1 else int(low))
     stop = x0 if high + 1.0 < x0 else (x1 if high + 1.0 > x1 else int(high) + 1)
+    return first, stop
+
+
+@kernel
+def _row_range(my: float, ca: float, cb: float, cc: float, limit: float, y0: int, y1: int) -> tuple[int, int]:
+    """The rows ``y0 <= py < y1`` that the ellipse of :func:`_row_span` may reach, ``(first, stop)``: its
+    half-height is ``sqrt(limit Sigma_yy)``, ``Sigma_yy = ca / (ca cc - cb^2)`` (the conic's inverse),
+    widened to whole rows. Not positive definite (or not finite): every row."""
+    det = ca * cc - cb * cb
+    if not (ca > 0.0 and det > 0.0 and limit >= 0.0):
+        return y0, y1
+    half = np.sqrt(limit * ca / det)
+    low, high = np.floor(my - half), np.ceil(my + half)
+    if not (low <= high):
+        return y0, y1
+    first = y0 if low < y0 else (y1 if low > y1 else int(low))
+    stop = y0 if high + 1.0 < y0 else (y1 if high + 1.0 > y1 else int(high) + 1)
     return first, stop
 
 
@@ -104,7 +190,9 @@ def _rasterize_forward_kernel(tile_start: int, tile_stop: int, ranges: np.ndarra
             if skip > 0.0:                      # alpha under 1/255 everywhere
                 continue
             i = ids[k]
-            for py in range(y0, y1):
+            red_i, green_i, blue_i = colors[i, 0], colors[i, 1], colors[i, 2]
+            row_first, row_stop = _row_range(my, ca, cb, cc, -2.0 * skip, y0, y1)
+            for py in range(row_first, row_stop):
                 first, after = _row_span(mx, my, ca, cb, cc, -2.0 * skip, py, x0, x1)
                 dy = my - py
                 for px in range(first, after):
@@ -125,9 +213,9 @@ def _rasterize_forward_kernel(tile_start: int, tile_stop: int, ranges: np.ndarra
                         alive -= 1
                         continue
                     weight = alpha * T
-                    red[j] += colors[i, 0] * weight
-                    green[j] += colors[i, 1] * weight
-                    blue[j] += colors[i, 2] * weight
+                    red[j] += red_i * weight
+                    green[j] += green_i * weight
+                    blue[j] += blue_i * weight
                     trans[j] = next_t
                     last[j] = k - start + 1
         for py in range(y0, y1):
@@ -184,7 +272,8 @@ def _rasterize_backward_kernel(tile_start: int, tile_stop: int, ranges: np.ndarr
             i = ids[k]
             red, green, blue = colors[i, 0], colors[i, 1], colors[i, 2]
             g[:] = 0.0
-            for py in range(y0, y1):
+            row_first, row_stop = _row_range(my, ca, cb, cc, -2.0 * skip, y0, y1)
+            for py in range(row_first, row_stop):
                 first, after = _row_span(mx, my, ca, cb, cc, -2.0 * skip, py, x0, x1)
                 dy = my - py
                 for px in range(first, after):
@@ -231,7 +320,7 @@ def _rasterize_backward_kernel(tile_start: int, tile_stop: int, ranges: np.ndarr
 
 
 def _warm_up() -> None:
-    """Compile both kernels for float32 (training's dtype) on a one-tile image with one Gaussian."""
+    """Compile the kernels for float32 (training's dtype) on a one-tile image with one Gaussian."""
     f4 = np.float32
     ranges, ids = np.array([[0, 1]], np.int64), np.zeros(1, np.int64)
     packed = pack_pairs(ids, np.array([[4.0, 4.0]], f4), np.array([[0.2, 0.0, 0.2]], f4), np.array([0.5], f4))
@@ -240,7 +329,10 @@ def _warm_up() -> None:
     _rasterize_forward_kernel(0, 1, ranges, ids, packed, colors, background, 16, 1, image, final_t, n_contrib)
     _rasterize_backward_kernel(0, 1, ranges, ids, packed, colors, background, 16, 1, final_t, n_contrib,
                                np.ones((8, 8, 3), f4), np.zeros((1, 9), f4))
+    _bin_kernel(ids, np.array([[0, 0, 1, 1]], np.int64), np.full((1, 2), 4.0), np.array([[0.2, 0.0, 0.2]]),
+                np.ones(1), True, 16, 8, 8, 1, np.zeros((1, 2), np.int64), np.zeros(1, np.int64),
+                np.zeros(1, np.bool_))
 
 
 register_warm_up("splatting", ["train_splats", "render_held_out", "render_view"],
-                 [_rasterize_forward_kernel, _rasterize_backward_kernel], _warm_up)
+                 [_rasterize_forward_kernel, _rasterize_backward_kernel, _bin_kernel], _warm_up)

@@ -2,9 +2,10 @@
 front-to-back compositing and its hand-written backward pass, wrapped in a ``torch.autograd.Function``.
 
 Kerbl et al. 2023, section 6 ("Fast differentiable rasterizer for Gaussians"): the image is cut into
-16 x 16 px tiles; each Gaussian is listed once in every tile its 3-sigma rectangle touches
-(:func:`bin_gaussians`); each tile's list is sorted by depth (one sort of (tile, depth) keys, the
-paper's radix sort done by ``np.lexsort``); each pixel composites its tile's list front to back and stops
+16 x 16 px tiles; each Gaussian is listed once in every tile its 3-sigma rectangle touches and its
+ellipse (where alpha can reach 1/255) reaches (:func:`bin_gaussians`); each tile's list is sorted by
+depth (the paper's radix sort of (tile, depth) keys done as one depth sort and a compiled counting sort
+by tile); each pixel composites its tile's list front to back and stops
 when the transmittance would fall below 1e-4 (:mod:`._kernels`). The backward pass re-walks each pixel's
 list back to front. The projection before it (:func:`.gaussians.project`) and the spherical harmonics stay
 in torch autograd, so :func:`render` is differentiable in every parameter. :mod:`.reference` is the slow
@@ -25,7 +26,8 @@ import torch
 
 from lab.core import CapacityExceeded
 from lab.core.kernels import bands, in_parallel, workers
-from lab.modules.splatting._kernels import _rasterize_backward_kernel, _rasterize_forward_kernel, pack_pairs
+from lab.modules.splatting._kernels import (_bin_kernel, _rasterize_backward_kernel,
+                                            _rasterize_forward_kernel, alpha_floor_exponents, pack_pairs)
 from lab.modules.splatting.gaussians import TILE_SIZE, View, activated_opacities, project, view_colors
 
 #: Most (Gaussian, tile) pairs one image may list (about 0.5 GB of sort keys and indices).
@@ -49,31 +51,35 @@ class Binning:
 
 
 def bin_gaussians(rects: np.ndarray, depths: np.ndarray, *, width: int, height: int,
-                  tile_size: int = TILE_SIZE) -> Binning:
+                  tile_size: int = TILE_SIZE,
+                  footprints: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None) -> Binning:
     """List each Gaussian in every tile of its rectangle ``rects`` (N, 4) ``(x0, y0, x1, y1)`` (an empty
-    rectangle: not drawn) and sort each tile's list by ``depths`` (N,). :class:`CapacityExceeded` past
-    :data:`MAX_TILE_PAIRS` pairs."""
+    rectangle: not drawn) and sort each tile's list by ``depths`` (N,) (ties in index order: a stable
+    counting sort by tile of the Gaussians in depth order). With ``footprints``, the Gaussians' ``(means2d
+    (N, 2), conics (N, 3), opacities (N,))``, a tile that the ellipse where the Gaussian's alpha can reach
+    1/255 misses is left out (the 3-sigma square lists the corners of a thin diagonal one, and a faint one
+    reaches less far): it would add nothing there. :class:`CapacityExceeded` past :data:`MAX_TILE_PAIRS`
+    pairs (of the rectangles, before that culling)."""
     tiles_x, tiles_y = math.ceil(width / tile_size), math.ceil(height / tile_size)
-    rects = np.asarray(rects, dtype=np.int64).reshape(-1, 4)
-    span_x = np.maximum(rects[:, 2] - rects[:, 0], 0)
-    counts = span_x * np.maximum(rects[:, 3] - rects[:, 1], 0)
+    rects = np.ascontiguousarray(np.asarray(rects, dtype=np.int64).reshape(-1, 4))
+    counts = np.maximum(rects[:, 2] - rects[:, 0], 0) * np.maximum(rects[:, 3] - rects[:, 1], 0)
     total = int(counts.sum())
     if total > MAX_TILE_PAIRS:
         raise CapacityExceeded("gaussians", f"the Gaussians cover {total} (Gaussian, tile) pairs in one "
                                             f"{width}x{height} image, more than {MAX_TILE_PAIRS}: use fewer "
                                             "or smaller Gaussians")
-    gid = np.repeat(np.arange(len(rects)), counts)
-    first = np.cumsum(counts) - counts
-    local = np.arange(total) - np.repeat(first, counts)
-    tx = rects[gid, 0] + local % np.maximum(span_x[gid], 1)
-    ty = rects[gid, 1] + local // np.maximum(span_x[gid], 1)
-    tile = ty * tiles_x + tx
-    order = np.lexsort((np.asarray(depths)[gid], tile))          # stable: tile, then depth, then index
-    tile_sorted = tile[order]
-    every = np.arange(tiles_x * tiles_y)
-    ranges = np.stack([np.searchsorted(tile_sorted, every, "left"),
-                       np.searchsorted(tile_sorted, every, "right")], axis=1).astype(np.int64)
-    return Binning(ranges, gid[order].astype(np.int64), tiles_x, tiles_y)
+    drawn = np.flatnonzero(counts > 0)
+    order = drawn[np.argsort(np.asarray(depths)[drawn], kind="stable")]
+    if footprints is None:
+        means2d, conics, limits = np.zeros((len(rects), 2)), np.zeros((len(rects), 3)), np.zeros(len(rects))
+    else:
+        means2d, conics = (np.ascontiguousarray(a, dtype=np.float64) for a in footprints[:2])
+        limits = -2.0 * alpha_floor_exponents(np.asarray(footprints[2]))
+    ranges = np.zeros((tiles_x * tiles_y, 2), np.int64)
+    ids = np.empty(total, np.int64)
+    pairs = _bin_kernel(order, rects, means2d, conics, limits, footprints is not None, tile_size, width,
+                        height, tiles_x, ranges, ids, np.empty(total, np.bool_))
+    return Binning(ranges, ids[:pairs], tiles_x, tiles_y)
 
 
 def _numpy(tensor: torch.Tensor) -> np.ndarray:
@@ -129,7 +135,9 @@ def rasterize_image(means2d: torch.Tensor, conics: torch.Tensor, colors: torch.T
     ``colors`` (N, 3), ``opacities`` (N,) in [0, 1], ``depths`` (N,) and tile ``rects`` (N, 4) (empty: not
     drawn) as :func:`.gaussians.project` gives them, over ``background`` (3,). Differentiable in the first
     four."""
-    binning = bin_gaussians(_numpy(rects), _numpy(depths), width=width, height=height, tile_size=tile_size)
+    footprints = (_numpy(means2d), _numpy(conics), _numpy(opacities))
+    binning = bin_gaussians(_numpy(rects), _numpy(depths), width=width, height=height, tile_size=tile_size,
+                            footprints=footprints)
     dtype = means2d.dtype
     return _Rasterize.apply(means2d, conics.to(dtype), colors.to(dtype), opacities.to(dtype),
                             background.to(dtype), binning, width, height, tile_size)

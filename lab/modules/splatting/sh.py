@@ -28,6 +28,11 @@ def sh_count(degree: int) -> int:
 
 def sh_basis(directions: torch.Tensor, degree: int) -> torch.Tensor:
     """The real spherical harmonics ``Y_k(d)`` ``(N, (degree + 1)^2)`` at unit directions ``d`` (N, 3)."""
+    return torch.stack(_basis_terms(directions, degree), dim=-1)
+
+
+def _basis_terms(directions: torch.Tensor, degree: int) -> list[torch.Tensor]:
+    """:func:`sh_basis`'s columns, each (N,)."""
     if not 0 <= degree <= MAX_SH_DEGREE:
         raise InvalidValue("sh_degree", f"must be 0 to {MAX_SH_DEGREE}, got {degree}")
     x, y, z = directions.unbind(-1)
@@ -41,7 +46,7 @@ def sh_basis(directions: torch.Tensor, degree: int) -> torch.Tensor:
         terms += [C3[0] * y * (3 * xx - yy), C3[1] * x * y * z, C3[2] * y * (4 * zz - xx - yy),
                   C3[3] * z * (2 * zz - 3 * xx - 3 * yy), C3[4] * x * (4 * zz - xx - yy),
                   C3[5] * z * (xx - yy), C3[6] * x * (xx - 3 * yy)]
-    return torch.stack(terms, dim=-1)
+    return terms
 
 
 def sh_colors(sh: torch.Tensor, directions: torch.Tensor, degree: int) -> torch.Tensor:
@@ -51,8 +56,11 @@ def sh_colors(sh: torch.Tensor, directions: torch.Tensor, degree: int) -> torch.
     if sh.shape[-2] < count:
         raise InvalidValue("sh", f"degree {degree} needs {count} coefficients per channel, got "
                                  f"{sh.shape[-2]}")
-    basis = sh_basis(directions, degree)
-    return torch.clamp_min(torch.einsum("nk,nkc->nc", basis, sh[:, :count]) + 0.5, 0.0)
+    terms = _basis_terms(directions, degree)
+    total = C0 * sh[:, 0] + 0.5                # Y_0 = C0
+    for k in range(1, count):          # term by term: on the CPU faster than one (N, K) x (N, K, 3) product
+        total = total + terms[k][:, None] * sh[:, k]
+    return torch.clamp_min(total, 0.0)
 
 
 def rgb_to_sh(rgb: torch.Tensor) -> torch.Tensor:

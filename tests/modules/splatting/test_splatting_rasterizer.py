@@ -220,6 +220,54 @@ def test_binning_lists_each_gaussian_in_its_tiles_nearest_first():
     lists = [binning.ids[a:b].tolist() for a, b in binning.ranges]
     assert lists == [[0], [1, 0], [1], [], [1], [1, 3]]
     assert binning.pairs == 2 + 4 + 1
+    tied = RZ.bin_gaussians(rects, np.array([1.0, 1.0, 0.5, 1.0]), width=40, height=20, tile_size=16)
+    assert [tied.ids[a:b].tolist() for a, b in tied.ranges] == [[0], [0, 1], [1], [], [1], [1, 3]]
+
+
+def test_binning_with_footprints_leaves_out_only_tiles_the_ellipse_misses():
+    """Culled binning keeps a Gaussian in every tile where some pixel centre lies in the ellipse where its
+    alpha can reach 1/255 (brute force over the pixels), in the same depth order; the others it keeps are
+    those whose ellipse passes between the tile's pixel centres (it tests the box they span), few."""
+    rng = np.random.default_rng(3)
+    count, width, height, size = 60, 70, 50, 8
+    means2d = rng.uniform(-10, 80, (count, 2))
+    L = rng.normal(size=(count, 2, 2)) * rng.uniform(0.1, 0.8, (count, 1, 1))
+    cov = np.linalg.inv(L @ L.transpose(0, 2, 1) + 0.05 * np.eye(2))
+    conics = np.stack([cov[:, 0, 0], cov[:, 0, 1], cov[:, 1, 1]], axis=1)
+    opacities = rng.uniform(0.001, 1.0, count)
+    radius = np.ceil(3 * np.sqrt(np.linalg.eigvalsh(np.linalg.inv(cov))[:, 1]))
+    tiles = np.array([-(-width // size), -(-height // size)])
+    low = np.clip(np.floor((means2d - radius[:, None]) / size), 0, tiles)
+    high = np.clip(np.floor((means2d + radius[:, None] + size - 1) / size), 0, tiles)
+    rects = np.concatenate([low, high], axis=1).astype(np.int64)
+    depths = rng.uniform(1, 5, count)
+    full = RZ.bin_gaussians(rects, depths, width=width, height=height, tile_size=size)
+    culled = RZ.bin_gaussians(rects, depths, width=width, height=height, tile_size=size,
+                              footprints=(means2d, conics, opacities))
+    limit = 2 * np.log(255 * opacities)
+
+    def reach(listed: np.ndarray, tx: int, ty: int, step: float) -> np.ndarray:
+        """Whether each Gaussian's ellipse holds a point of the tile's box on a grid of ``step`` px."""
+        xs = np.arange(tx * size, min(width, (tx + 1) * size) - 1 + 1e-9, step)
+        ys = np.arange(ty * size, min(height, (ty + 1) * size) - 1 + 1e-9, step)
+        dx = means2d[listed, 0, None, None] - xs[None, None, :]
+        dy = means2d[listed, 1, None, None] - ys[None, :, None]
+        q = (conics[listed, 0, None, None] * dx * dx + 2 * conics[listed, 1, None, None] * dx * dy
+             + conics[listed, 2, None, None] * dy * dy)
+        return (q <= limit[listed, None, None]).any(axis=(1, 2))
+
+    dropped = extra = 0
+    for tile, ((a, b), (c, d)) in enumerate(zip(full.ranges, culled.ranges, strict=True)):
+        ty, tx = divmod(tile, int(tiles[0]))
+        listed, kept = full.ids[a:b], culled.ids[c:d]
+        reached = reach(listed, tx, ty, 1.0)
+        assert set(listed[reached]) <= set(kept) <= set(listed), tile
+        assert kept.tolist() == [g for g in listed if g in set(kept)]          # the depth order kept
+        between = np.isin(listed, kept) & ~reached
+        assert reach(listed[between], tx, ty, 1 / 16).all(), tile
+        dropped += len(listed) - len(kept)
+        extra += int(between.sum())
+    assert dropped > 20 and extra <= 0.1 * culled.pairs and culled.pairs == full.pairs - dropped
 
 
 def test_too_many_tile_pairs_are_refused_by_name(monkeypatch):
