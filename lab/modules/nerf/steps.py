@@ -296,9 +296,8 @@ def train_nerf(rays: RayBundle, encoding: EncodingConfig, cameras: Cameras, *,
         config = FieldConfig(as_encoding(encoding), hidden, layers, samples, fine_samples)
         options = TrainingOptions(batch_rays, learning_rate, lr_decay, iterations, budget_seconds,
                                   preview_every)
-        with single_threaded(device == "cpu"):  # 3x less CPU than 2 threads on shared cores (measured)
-            run = yield from offering_preview(train_field(bundle, config, options, background=colour,
-                                                          preview=preview, rng=rng, device=device), preview)
+        run = yield from offering_preview(train_field(bundle, config, options, background=colour,
+                                                      preview=preview, rng=rng, device=device), preview)
         assert isinstance(run.net, NerfMLP)
         model = checkpoint_from(run.net, bundle.bounds, back)
     warnings = _check_run(run, iterations, budget_seconds)
