@@ -29,6 +29,7 @@ from lab.core.kernels import bands, in_parallel, workers
 from lab.modules.splatting._kernels import (_bin_kernel, _rasterize_backward_kernel,
                                             _rasterize_forward_kernel, alpha_floor_exponents, pack_pairs)
 from lab.modules.splatting.gaussians import TILE_SIZE, View, activated_opacities, project, view_colors
+from lab.modules.splatting.values import check_count
 
 #: Most (Gaussian, tile) pairs one image may list (about 0.5 GB of sort keys and indices).
 MAX_TILE_PAIRS = 2**25
@@ -160,7 +161,10 @@ def render(means: torch.Tensor, log_scales: torch.Tensor, quats: torch.Tensor, o
     """Render Gaussians ``means`` (N, 3), ``log_scales`` (N, 3), ``quats`` (N, 4) ``(w, x, y, z)``,
     ``opacity_logits`` (N,) and spherical harmonics ``sh`` (N, K, 3) (degrees up to ``sh_degree`` used)
     seen by ``view``, over ``background`` (3,) (Kerbl et al. 2023, sections 4 and 6): projection and colours
-    in torch, compositing by the compiled tile rasterizer; differentiable in every parameter."""
+    in torch, compositing by the compiled tile rasterizer; differentiable in every parameter.
+    :class:`CapacityExceeded` (``gaussians``) past :data:`.values.MAX_GAUSSIANS`, before anything is
+    allocated."""
+    check_count(len(means))
     projected = project(means, log_scales, quats, view, tile_size=tile_size)
     means2d = projected.means2d
     if means2d.requires_grad:

@@ -270,6 +270,16 @@ def test_binning_with_footprints_leaves_out_only_tiles_the_ellipse_misses():
     assert dropped > 20 and extra <= 0.1 * culled.pairs and culled.pairs == full.pairs - dropped
 
 
+def test_more_gaussians_than_the_cap_are_refused_by_name_before_rendering(monkeypatch):
+    scene = random_scene(0, count=12)
+    monkeypatch.setattr("lab.modules.splatting.values.MAX_GAUSSIANS", 11)
+    with pytest.raises(CapacityExceeded, match="12 Gaussians is more than the cap of 11") as caught:
+        RZ.render(*(scene[k] for k in NAMES), camera(), sh_degree=0, background=torch.ones(3, dtype=F64))
+    assert caught.value.field == "gaussians"
+    monkeypatch.setattr("lab.modules.splatting.values.MAX_GAUSSIANS", 12)
+    RZ.render(*(scene[k] for k in NAMES), camera(), sh_degree=0, background=torch.ones(3, dtype=F64))
+
+
 def test_too_many_tile_pairs_are_refused_by_name(monkeypatch):
     monkeypatch.setattr(RZ, "MAX_TILE_PAIRS", 5)
     with pytest.raises(CapacityExceeded, match="Gaussian, tile"):
