@@ -22,6 +22,7 @@ The package (this file is its only import surface):
     model.py       the NeRF MLP and rendering rays and images through it
     grid.py        the accelerated variant: a voxel grid trained coarse to fine, empty space skipped
     training.py    the training loop (a generator yielding progress and previews)
+    preview.py     the training preview that follows a camera (the viewer's: lab/viewer/interactions/nerf.py)
     warmup.py      the 2D warm-up: a coordinate MLP fitting one image, with and without the encoding
     path.py        the orbit of novel views about the scene centre
     mesh.py        the density's level set by marching cubes, coloured by head-on rays
@@ -29,6 +30,8 @@ The package (this file is its only import surface):
     reference.py   slow readable loop versions of the fast functions: the tests' oracles
     evaluate.py    PSNR, SSIM, depth error of held-out views
     datasets.py    a synthetic object (exact depth) and the NeRF-synthetic layout
+    basics.py      lesson 05's teaching pipeline (``lab.modules.nerf.basics:PIPELINE``, not registered): the
+                   encoding, ray directions, weights and inverse-CDF sampling as steps on float64 arrays
 
 State names:
     images          ImageSet        the training views (RGB, composited on white)
