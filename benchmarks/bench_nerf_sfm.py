@@ -11,14 +11,17 @@ configuration) then trains at the same budget on the SfM poses and on the true p
 registered images (the true run's bounds: the same points box, aligned into the true frame, so that only
 the poses differ), both read at ``--downscale`` (800 px / 8 = 100 px), and each is evaluated on the
 held-out views. With ``--splatting``, splatting (``initialize_gaussians`` + ``train_splats`` at the same
-budget, bench_splatting's controls) starts once from the SfM points (in the SfM frame) and once from as
-many true surface points (``surface_points`` of the exact depths of the true training cameras).
+budget, bench_splatting's controls) trains on the true poses of the registered views once from the SfM
+points (carried into the true frame by the alignment) and once from as many true surface points
+(``surface_points`` of the exact depths of the true training cameras), so that only the start differs;
+and once more the whole chain, SfM's points on SfM's poses in the SfM frame.
 
 Keys of ``RESULT {json}``: ``psnr_true_poses``, ``psnr_sfm_poses``, ``psnr_sfm_poses_minus_true`` (and
 ``ssim_*``), ``registered`` (of ``train_views``), ``sfm_points``, ``sfm_rotation_error_deg`` and
 ``sfm_center_error_rel`` (SfM's own evaluation after alignment), ``train_center_error`` (RMS centre error
 after alignment, scene units), ``sfm_cpu_seconds``; with ``--splatting`` ``psnr_splat_true_points``,
-``psnr_splat_sfm_points``, ``psnr_splat_sfm_minus_true``; ``budget``, ``clock``, ``torch_threads``,
+``psnr_splat_sfm_points`` (both on the true poses), ``psnr_splat_sfm_minus_true``, ``psnr_splat_sfm_chain``
+(SfM points and poses); ``budget``, ``clock``, ``torch_threads``,
 ``load_average_start`` and ``load_average`` (the 1-minute load when the run ended).
 
     python3 benchmarks/bench_nerf_sfm.py --budget 30 --threads 1 --cpu-clock
@@ -188,7 +191,8 @@ def main() -> None:
             count = len(sfm.state["sfm_points"])
             true_points = true_surface_points(scene, true, count)
             report("splat_true_points", splat_run(true_points, args.budget), result)
-            report("splat_sfm_points", splat_run(sfm, args.budget), result)
+            report("splat_sfm_points", splat_run(true, args.budget), result)
+            report("splat_sfm_chain", splat_run(sfm, args.budget), result)
             result["psnr_splat_sfm_minus_true"] = (result["psnr_splat_sfm_points"]
                                                    - result["psnr_splat_true_points"])
     result["load_average"] = os.getloadavg()[0]
