@@ -40,12 +40,26 @@ MIN_SHARE = 0.3
 #: Controls set in long steps before Run all, as a user on a slow machine does: numbers typed, a text picked
 #: in the dropdown. Diffusion's defaults train 4000 iterations (minutes on 2 shared cores); NeRF's MLP trains
 #: 60 s and a shorter MLP run leaves a density too faint for extract_mesh's level, while the grid reaches it
-#: in a few hundred iterations (counted, not timed, so the result does not depend on the machine's load).
+#: in a few hundred iterations (counted, not timed, so the result does not depend on the machine's load);
+#: splatting trains 10 s instead of its default 60 s (what it draws is the same kind whatever it reached).
 QUICK: dict[str, dict[str, dict[str, float | str]]] = {
     "diffusion": {"train_denoiser": {"iterations": 300}, "sample": {"count": 200}},
     "nerf": {"fit_image_2d": {"iterations": 100},
              "train_nerf": {"method": "grid", "iterations": 200, "budget_seconds": 0},
-             "render_path": {"frames": 8}}}
+             "render_path": {"frames": 8}},
+    "splatting": {"train_splats": {"budget_seconds": 10}, "render_path": {"frames": 8}}}
+#: viser 1.1.1's Gaussian splat renderer makes three.js log this for any splats, however well formed (a viser
+#: server drawing 200 unit-covariance Gaussians and nothing else logs it too): not the lab's error.
+VISER_SPLAT_NOTICE = "THREE.BufferGeometry.computeBoundingSphere(): Computed radius is NaN"
+#: The modules that draw GaussianSplats.
+SPLAT_MODULES = ("splatting",)
+
+
+def _viser_splat_notice(error: str, module: str) -> bool:
+    """Whether a console error is viser's splat renderer's notice in a module that draws splats."""
+    return module in SPLAT_MODULES and error.startswith(VISER_SPLAT_NOTICE)
+
+
 #: A long step that ran at least this long (s) must have shown its progress while its label read running.
 WATCHABLE_S = 2.0
 #: Slack (CSS px) for a projected box that touches the free canvas's edge.
@@ -268,7 +282,7 @@ def test_run_all_from_the_landing_page_shows_the_module(served_lab, shared_brows
         problems = _progress_problems(records, long_steps, seconds)
         problems += _legend_problems(page, module, [name for name, _prefix, _long in steps])
         problems += _framing_problems(on_screen)
-        problems += [f"console error: {error}" for error in errors]
+        problems += [f"console error: {error}" for error in errors if not _viser_splat_notice(error, module)]
         assert not problems, f"{module}:\n" + "\n".join(problems)
     finally:
         page.screenshot(path=str(OUTPUT / f"{module}-last.png"))
