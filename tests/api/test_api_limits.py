@@ -8,6 +8,7 @@ around the request.
 from __future__ import annotations
 
 import asyncio
+import functools
 import io
 import os
 import struct
@@ -41,14 +42,28 @@ if str(FIXTURES) not in sys.path:  # the toy lesson's module "toy_lesson_pipelin
 
 
 # --- helpers ---------------------------------------------------------------------------------------
+@functools.lru_cache(maxsize=4)
 def png_claiming(width: int, height: int) -> bytes:
-    """A valid grey PNG of ``width`` x ``height`` zero pixels, compressed row by row (never held decoded)."""
+    """A valid grey PNG of ``width`` x ``height`` zero pixels (never held decoded): one block of rows is
+    deflated once and its bytes repeated (a full flush makes each copy stand alone), the checksum summed over
+    the blocks; made once per size."""
     def chunk(kind: bytes, data: bytes) -> bytes:
         return struct.pack(">I", len(data)) + kind + data + struct.pack(">I", zlib.crc32(kind + data) & 0xFFFFFFFF)
 
-    compressor = zlib.compressobj(9)
     row = b"\x00" * (width + 1)  # filter byte + pixels
-    data = b"".join(compressor.compress(row) for _ in range(height)) + compressor.flush()
+    per_block = max(1, min(height, (16 << 20) // len(row)))
+    blocks, rest = divmod(height, per_block)
+
+    def deflated(rows: int, mode: int) -> bytes:
+        compressor = zlib.compressobj(9, zlib.DEFLATED, -15)  # raw deflate: the zlib frame is added below
+        return compressor.compress(row * rows) + compressor.flush(mode)
+
+    block = deflated(per_block, zlib.Z_FULL_FLUSH)
+    checksum = 1
+    for _ in range(blocks):
+        checksum = zlib.adler32(row * per_block, checksum)
+    checksum = zlib.adler32(row * rest, checksum)
+    data = b"\x78\xda" + block * blocks + deflated(rest, zlib.Z_FINISH) + struct.pack(">I", checksum)
     return (b"\x89PNG\r\n\x1a\n" + chunk(b"IHDR", struct.pack(">IIBBBBB", width, height, 8, 0, 0, 0, 0))
             + chunk(b"IDAT", data) + chunk(b"IEND", b""))
 
