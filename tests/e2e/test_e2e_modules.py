@@ -38,12 +38,14 @@ RUN_S = 300
 #: The 3D content must span at least this share of the free canvas's width or height (not a speck).
 MIN_SHARE = 0.3
 #: Controls set in long steps before Run all, as a user on a slow machine does: numbers typed, a text picked
-#: in the dropdown. Diffusion's defaults train 4000 iterations (minutes on 2 shared cores); NeRF's MLP trains
-#: 60 s and a shorter MLP run leaves a density too faint for extract_mesh's level, while the grid reaches it
-#: in a few hundred iterations (counted, not timed, so the result does not depend on the machine's load);
-#: splatting trains 10 s instead of its default 60 s (what it draws is the same kind whatever it reached).
+#: in the dropdown. Diffusion's defaults train 4000 iterations (minutes on 2 shared cores), and a batch of 48
+#: is under its SMALL_WORK, so it trains on one thread (300 iterations of 512 took 88 s at load 15); NeRF's
+#: MLP trains 60 s and a shorter MLP run leaves a density too faint for extract_mesh's level, while the grid
+#: reaches it in a few hundred iterations (counted, not timed, so the result does not depend on the
+#: machine's load); splatting trains 10 s instead of its default 60 s (what it draws is the same kind whatever
+#: it reached).
 QUICK: dict[str, dict[str, dict[str, float | str]]] = {
-    "diffusion": {"train_denoiser": {"iterations": 300}, "sample": {"count": 200}},
+    "diffusion": {"train_denoiser": {"iterations": 300, "batch_size": 48}, "sample": {"count": 200}},
     "nerf": {"fit_image_2d": {"iterations": 100},
              "train_nerf": {"method": "grid", "iterations": 200, "budget_seconds": 0},
              "render_path": {"frames": 8}},
