@@ -298,7 +298,8 @@ class ClientView:
                 show_error=self.show_error,
                 run=lambda step, params: self.guard(lambda: self.run_with(step, params)),
                 restart=self._restart_for_interaction, carried=self._carry,
-                extent=lambda: scene_extent(dict(session.state).values()))
+                extent=lambda: scene_extent(dict(session.state).values()),
+                camera=getattr(self.target, "camera", None) if self.is_client else None)
             try:
                 with folder:
                     self.interactions.append(cls(ctx))

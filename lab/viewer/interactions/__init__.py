@@ -109,6 +109,9 @@ class InteractionContext:
     extent: Callable[[], float]
     #: What the interactions of the previous session handed over through ``restart(carry=...)``.
     carried: Any = None
+    #: The tab's browser camera (viser's ``CameraHandle``: pose, fov, aspect, ``on_update``), None for the
+    #: server-wide scene (NeRF's training preview follows it).
+    camera: Any = None
 
     def value(self, name: str, state: Mapping[str, Any] | None = None) -> Any:
         """State value ``name``: of ``state`` (the copy :meth:`Interaction.update` got) or, without it, of the
