@@ -7,7 +7,9 @@ parameter and takes an Adam step (:class:`~.density.TrainedGaussians`). The sphe
 starts at 0 and rises by one every ``sh_every`` iterations up to ``sh_degree``; the density control runs
 every ``densify_every`` iterations from ``densify_from`` on until ``densify_until`` of the run, and the
 opacities are reset every ``opacity_reset_every``. The budget is a number of iterations and, optionally,
-seconds of training (previews excluded); whichever ends first. Randomness comes from the step's ``rng``.
+seconds of training (previews excluded); whichever ends first. A :class:`~lab.core.Cancelled` thrown in
+where the loop yields (the runner's Cancel) ends it too, with the Gaussians trained so far as the result.
+Randomness comes from the step's ``rng``.
 """
 
 from __future__ import annotations
@@ -19,7 +21,7 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
-from lab.core import Cameras, Image, Progress
+from lab.core import Cameras, Cancelled, Image, Progress
 from lab.modules.nerf import image_psnr
 from lab.modules.splatting.density import DensityEvent, TrainedGaussians, position_lr
 from lab.modules.splatting.gaussians import View, view_of
@@ -125,9 +127,12 @@ def train_gaussians(initial: SplatModel, images: np.ndarray, cameras: Cameras,
             if done % options.preview_every == 0 or last:
                 values["preview"] = _preview(gaussians, views[preview_view], degree, background)
             recent = float(np.mean(losses[-REPORT_EVERY:]))
-            yield Progress(iteration=done, total=options.iterations, loss=recent,
-                           message=f"PSNR {np.mean(psnrs[-REPORT_EVERY:]):.2f} dB, {len(gaussians)} "
-                                   f"Gaussians, {elapsed:.1f} s", values=values)
+            try:
+                yield Progress(iteration=done, total=options.iterations, loss=recent,
+                               message=f"PSNR {np.mean(psnrs[-REPORT_EVERY:]):.2f} dB, {len(gaussians)} "
+                                       f"Gaussians, {elapsed:.1f} s", values=values)
+            except Cancelled:  # the runner's Cancel: the Gaussians trained so far are the result
+                break
     model = model_from_tensors({**gaussians.params, "sh": gaussians.sh()}, sh_degree=degree,
                                background=initial.background)
     return SplatTrainingRun(model, np.asarray(losses), np.asarray(psnrs), elapsed, tuple(events))

@@ -170,8 +170,6 @@ def test_exports_before_training_and_ply_over_the_cap_are_named(tmp_path, monkey
         S.read_ply(path)
 
 
-@pytest.mark.xfail(strict=True, reason="needs patch splatapp-splat-cancel-keeps-model.diff (training.py: "
-                                       "a Cancelled thrown in ends the loop); remove once applied")
 def test_cancelling_training_keeps_the_gaussians_trained_so_far(trained):
     from lab.core import Cancelled
 
