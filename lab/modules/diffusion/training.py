@@ -10,17 +10,16 @@ with probability ``label_dropout`` (Ho & Salimans 2022, Algorithm 1).
 
 from __future__ import annotations
 
-import contextlib
 import math
-import threading
 import time
-from collections.abc import Generator, Iterator
+from collections.abc import Generator
 from dataclasses import dataclass
 
 import numpy as np
 import torch
 
 from lab.core import Curve, Progress
+from lab.core.threads import single_threaded
 from lab.modules.diffusion.model import DenoiserMLP, randn, torch_generator
 from lab.modules.diffusion.values import TIME_SCALE
 
@@ -97,31 +96,6 @@ def _batch(setup: TrainingSetup, batch_size: int, generator: torch.Generator) ->
 #: such a network trains on one thread (on a busy 2-core machine 10 to 30 times faster than on two).
 SMALL_WORK = 1 << 20
 
-_THREADS_LOCK = threading.Lock()
-_single_threaded = {"count": 0, "saved": 0}
-
-
-@contextlib.contextmanager
-def single_threaded(enabled: bool = True) -> Iterator[None]:
-    """torch on one CPU thread inside the block (``torch.set_num_threads`` is process-wide: nested and
-    concurrent blocks share it, and the last one out restores the count the first one found)."""
-    if not enabled:
-        yield
-        return
-    with _THREADS_LOCK:
-        if _single_threaded["count"] == 0:
-            _single_threaded["saved"] = torch.get_num_threads()
-            torch.set_num_threads(1)
-        _single_threaded["count"] += 1
-    try:
-        yield
-    finally:
-        with _THREADS_LOCK:
-            _single_threaded["count"] -= 1
-            if _single_threaded["count"] == 0:
-                torch.set_num_threads(_single_threaded["saved"])
-
-
 def train_mlp(setup: TrainingSetup, *, iterations: int, batch_size: int, hidden: int, layers: int,
               learning_rate: float, rng: np.random.Generator) -> Generator[Progress, None, TrainingRun]:
     """Adam on the mean squared error with a cosine-decayed learning rate; the returned weights are an
@@ -179,4 +153,4 @@ def loss_curve(losses: np.ndarray, objective: str) -> Curve:
 
 
 __all__ = ["SMALL_WORK", "TrainingRun", "TrainingSetup", "flow_matching_pair", "loss_curve",
-           "single_threaded", "train_mlp", "training_target"]
+           "train_mlp", "training_target"]

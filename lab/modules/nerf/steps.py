@@ -24,7 +24,7 @@ import torch
 
 from lab.core import (Cameras, CapacityExceeded, Curve, Image, ImageSet, InvalidControl, InvalidValue, Mesh,
                       PointCloud, Progress, Range, Segments3D, Warnings, metric, step_result)
-from lab.modules.diffusion.training import single_threaded
+from lab.core.threads import single_threaded
 from lab.modules.nerf.encoding import encoding_size, positional_encoding
 from lab.modules.nerf.evaluate import image_psnr
 from lab.modules.nerf.grid import (GridCheckpoint, GridField, GridOptions, grid_checkpoint_from, grid_from,
