@@ -80,6 +80,7 @@ from lab.modules.nerf.rendering import (PackedRendering, VolumeRendering, hierar
                                         interval_lengths, sample_pdf, volume_render, volume_render_packed)
 from lab.modules.nerf.mesh import density_lattice, iso_surface, lattice_points, mesh_trimesh
 from lab.modules.nerf.path import mean_up, orbit_path
+from lab.modules.nerf.sfm_dataset import sfm_reconstruction
 from lab.modules.nerf.steps import (FieldRenderer, encode_positions, extract_mesh, fit_image_2d,
                                     generate_rays, render_held_out, render_path, render_view, train_nerf,
                                     training_views)
@@ -101,7 +102,7 @@ PIPELINE = Pipeline.build(
             "and a coloured mesh by marching cubes.",
     steps=[generate_rays, encode_positions, fit_image_2d, train_nerf, render_held_out, render_view,
            render_path, extract_mesh],
-    datasets=[synthetic_object, nerf_synthetic],
+    datasets=[synthetic_object, nerf_synthetic, sfm_reconstruction],
     evaluations=EVALUATIONS,
     exports=EXPORTS,
     views=VIEWS,
@@ -117,7 +118,7 @@ __all__ = [
     "iso_surface", "lattice_points", "mean_up", "mesh_trimesh", "nerf_synthetic", "network_from",
     "object_scene", "orbit_path", "pixel_centres", "positional_encoding", "positional_encoding_reference",
     "render_grid", "render_held_out", "render_image", "render_path", "render_rays", "render_view",
-    "sample_pdf", "sample_pdf_reference", "scaled_cameras", "stratified_samples",
+    "sample_pdf", "sample_pdf_reference", "scaled_cameras", "sfm_reconstruction", "stratified_samples",
     "stratified_samples_reference", "synthetic_object", "train_nerf", "training_views", "volume_render",
     "volume_render_packed", "volume_render_reference",
 ]
