@@ -76,7 +76,7 @@ class TrainingCamera(Interaction):
         self.follower: FollowedPreview | None = None
         self.closed = False
         self._lock = threading.Lock()
-        self.camera = _browser_camera(ctx)
+        self.camera = ctx.camera if ctx.is_client else None  # the tab's viser camera handle
         if self.camera is not None:
             self.camera.on_update(ctx.guarded(lambda _camera: self.send()))
         self.follow.on_update(ctx.guarded(lambda _event: self.send()))
@@ -142,17 +142,6 @@ class RayOfPixel(HeldOutPixelClick):
         """The held-out cameras (carrying ``test_renders``) once a model is trained."""
         cameras = self.ctx.value("held_out_cameras")
         return cameras if cameras is not None and self.ctx.value("model") is not None else None
-
-
-def _browser_camera(ctx: InteractionContext) -> Any | None:
-    """The tab's viser camera handle (None for the server-wide scene): ``ctx.camera`` where the context
-    carries it, else the camera of the client that owns the tab's scene."""
-    if not ctx.is_client:
-        return None
-    camera = getattr(ctx, "camera", None)
-    if camera is None:
-        camera = getattr(getattr(ctx.scene, "_owner", None), "camera", None)
-    return camera
 
 
 INTERACTIONS: list[type[Interaction]] = [TrainingCamera, RayOfPixel]
