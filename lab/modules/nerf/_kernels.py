@@ -23,8 +23,11 @@ import numpy as np
 
 from lab.core.kernels import dispatchers_in, kernel, register_warm_up
 
-#: Added to the interpolated raw density before the softplus (:data:`lab.modules.nerf.grid.DENSITY_SHIFT`).
-_SHIFT = -5.0
+#: ``sigma = DENSITY_GAIN softplus(raw + DENSITY_SHIFT)`` (see :func:`lab.modules.nerf.grid.grid_density`).
+DENSITY_GAIN = 50.0
+#: Added to the interpolated raw density before the softplus: raw 0 gives sigma about 0.0067.
+DENSITY_SHIFT = -5.0 - math.log(DENSITY_GAIN)
+_GAIN, _SHIFT = DENSITY_GAIN, DENSITY_SHIFT
 
 
 @kernel
@@ -137,7 +140,7 @@ def _render_grid_kernel(table: np.ndarray, r: int, cells: np.ndarray,
             if not _occupied_kernel(cells, x0, x1, x2):
                 continue
             raw = _sample_point_kernel(table, r, x0, x1, x2, rows, weights, rgb)
-            sigma = _softplus_kernel(raw + _SHIFT)
+            sigma = _GAIN * _softplus_kernel(raw + _SHIFT)
             alpha = -math.expm1(-sigma * min(ds, far - t) * norm)
             w = transmittance * alpha
             acc0 += w * rgb[0]
@@ -165,7 +168,7 @@ def _render_grid_backward_kernel(table: np.ndarray, r: int, cells: np.ndarray, o
     ray marched again over the same samples, with its ``rendered`` colour ``C`` (background included).
     With ``acc_i = sum_(j <= i) w_j c_j`` (so ``C - acc_i`` is what lies behind sample ``i``),
     ``dC / dc_i = w_i`` and ``dC / dsigma_i = delta_i (T_(i+1) c_i - (C - acc_i))`` (Plenoxels' and DVGO's
-    backward pass); then through the sigmoid, the softplus and the 8 trilinear weights."""
+    backward pass); then through the sigmoid, the scaled softplus and the 8 trilinear weights."""
     near, far, radius, step, end = params[0], params[1], params[5], params[6], params[7]
     rows = np.empty(8, np.int64)
     weights = np.empty(8)
@@ -190,7 +193,7 @@ def _render_grid_backward_kernel(table: np.ndarray, r: int, cells: np.ndarray, o
             if not _occupied_kernel(cells, x0, x1, x2):
                 continue
             raw = _sample_point_kernel(table, r, x0, x1, x2, rows, weights, rgb)
-            sigma = _softplus_kernel(raw + _SHIFT)
+            sigma = _GAIN * _softplus_kernel(raw + _SHIFT)
             delta = min(ds, far - t) * norm
             alpha = -math.expm1(-sigma * delta)
             w = transmittance * alpha
@@ -201,7 +204,7 @@ def _render_grid_backward_kernel(table: np.ndarray, r: int, cells: np.ndarray, o
             d_sigma = delta * (g0 * (after * rgb[0] - (total0 - acc0))
                                + g1 * (after * rgb[1] - (total1 - acc1))
                                + g2 * (after * rgb[2] - (total2 - acc2)))
-            d_raw = d_sigma / (1.0 + math.exp(-(raw + _SHIFT)))           # softplus' = sigmoid
+            d_raw = _GAIN * d_sigma / (1.0 + math.exp(-(raw + _SHIFT)))   # softplus' = sigmoid
             e0 = g0 * w * rgb[0] * (1.0 - rgb[0])
             e1 = g1 * w * rgb[1] * (1.0 - rgb[1])
             e2 = g2 * w * rgb[2] * (1.0 - rgb[2])

@@ -21,9 +21,9 @@ import numpy as np
 
 from lab.core import Cameras, Image, ImageSet, InvalidValue, Loaded, Range
 from lab.data.files import check_folder, read_image_file
-from lab.data.scenes import (Box, MeshObject, Scene, Sphere, atlas, intrinsics, noise_texture, render,
-                             shapes_texture)
-from lab.data.transforms_json import read_transforms_json
+from lab.data.scenes import (Box, MeshObject, Scene, Sphere, atlas, intrinsics, noise_texture, photo, render,
+                             shapes_texture, wood_texture)
+from lab.data.transforms_json import camera_to_world_opengl, read_transforms_json
 from lab.geometry.rotations import look_at
 from lab.modules.nerf.values import SceneBounds
 
@@ -53,6 +53,64 @@ def object_scene(seed: int = 0) -> Scene:
                Sphere((0.22, -0.12, 0.12), 0.2, ball, name="ball"),
                MeshObject(ring, name="ring"))
     return Scene(objects, background=WHITE, center=(0.0, 0.0, 0.0), home=(0.0, -3.0, 1.2), name="object")
+
+
+def untuned_scene(seed: int = 0) -> Scene:
+    """A second object that none of the grid's settings were tuned on (issue 17: "a scene in the
+    NeRF-synthetic layout that it was not tuned on"): a wood-grained box turned 30 degrees about z, a ball
+    wrapped in a photograph (scikit-image's "chelsea") and a cone coloured per vertex by noise, about
+    1.9 m across (the Blender scenes' size: within their 1.5 m of the origin), on white."""
+    import trimesh
+
+    s = 5000 + 31 * seed
+    turn = math.radians(30.0)
+    rotation = np.array([[math.cos(turn), -math.sin(turn), 0.0], [math.sin(turn), math.cos(turn), 0.0],
+                         [0.0, 0.0, 1.0]])
+    box = Box((-0.35, 0.25, -0.2), (0.7, 0.5, 0.6), rotation=rotation,
+              texture=atlas([wood_texture(128, 128, seed=s + k) for k in range(6)], cell=128), name="box")
+    ball = Sphere((0.45, -0.3, 0.05), 0.42, photo("chelsea"), name="ball")
+    cone = trimesh.creation.cone(radius=0.3, height=0.8, sections=48)
+    cone.apply_transform(trimesh.transformations.translation_matrix((-0.3, -0.55, -0.5)))
+    colours = noise_texture(32, 32, seed=s + 3, octaves=3, coarsest=2, saturation=1.0)
+    lookup = np.clip((cone.vertices[:, :2] + 1.0) / 2.0 * 31, 0, 31).astype(int)
+    cone.visual = trimesh.visual.ColorVisuals(
+        cone, vertex_colors=np.round(colours[lookup[:, 1], lookup[:, 0]] * 255).astype(np.uint8))
+    return Scene((box, ball, MeshObject(cone, name="cone")), background=WHITE, center=(0.0, 0.0, 0.0),
+                 home=(0.0, -4.0, 1.5), name="untuned object")
+
+
+#: Distance of the Blender scenes' cameras from the origin (NeRF-synthetic's lego: 4.03 m).
+BLENDER_DISTANCE = 4.0311
+
+
+def write_nerf_synthetic(folder: str, scene: Scene, *, size: int = 200,
+                         views: tuple[int, int, int] = (100, 8, 25)) -> str:
+    """Render ``scene`` into ``folder`` in the NeRF-synthetic layout: ``transforms_train.json``,
+    ``transforms_val.json`` and ``transforms_test.json`` with ``camera_angle_x`` and one frame a view
+    (``file_path`` ``./<split>/r_<i>`` without its ending, ``transform_matrix`` the OpenGL camera-to-world),
+    and ``size x size`` RGBA PNGs (8 bit, alpha the object's coverage, colour where it is seen).
+
+    ``views`` = (train, val, test) cameras on the upper hemisphere at :data:`BLENDER_DISTANCE` looking at
+    the origin (:func:`hemisphere_cameras`; the splits interleaved). One ray per pixel: read with
+    ``nerf_synthetic(downscale=f)``, each pixel is the mean of ``f x f`` of them, as the shared renderer's
+    ``supersample=f``. Returns ``folder``."""
+    os.makedirs(folder, exist_ok=True)
+    for split, count, offset in zip(("train", "val", "test"), views, (0.0, 0.25, 0.5), strict=True):
+        cameras = hemisphere_cameras(count, size=size, distance=BLENDER_DISTANCE, offset=offset,
+                                     center=np.zeros(3))
+        os.makedirs(os.path.join(folder, split), exist_ok=True)
+        frames = []
+        for i, c2w in enumerate(camera_to_world_opengl(cameras.R, cameras.t)):
+            view = render(scene, cameras, i, supersample=1)
+            rgba = np.concatenate([view.image.pixels * view.mask[..., None], view.mask[..., None]], axis=2)
+            bgra = np.round(np.clip(rgba, 0.0, 1.0) * 255).astype(np.uint8)[:, :, [2, 1, 0, 3]]
+            if not cv2.imwrite(os.path.join(folder, split, f"r_{i}.png"), bgra):
+                raise InvalidValue("folder", f"could not write an image into {folder!r}")
+            frames.append({"file_path": f"./{split}/r_{i}", "transform_matrix": c2w.tolist()})
+        angle = 2.0 * math.atan(size / (2.0 * float(cameras.K[0, 0, 0])))
+        with open(os.path.join(folder, f"transforms_{split}.json"), "w") as stream:
+            json.dump({"camera_angle_x": angle, "frames": frames}, stream, indent=1)
+    return folder
 
 
 def hemisphere_cameras(count: int, *, size: int, distance: float, offset: float,
@@ -227,5 +285,5 @@ def nerf_synthetic(*, path: str, downscale: Annotated[int, Range(1, 16)] = 8,
                   f"{train.width}x{train.height} views from {folder}")
 
 
-__all__ = ["OBJECT_DISTANCE", "OBJECT_FOV_DEG", "WHITE", "hemisphere_cameras", "nerf_synthetic",
-           "object_scene", "synthetic_object"]
+__all__ = ["BLENDER_DISTANCE", "OBJECT_DISTANCE", "OBJECT_FOV_DEG", "WHITE", "hemisphere_cameras",
+           "nerf_synthetic", "object_scene", "synthetic_object", "untuned_scene", "write_nerf_synthetic"]

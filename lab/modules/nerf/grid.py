@@ -6,9 +6,9 @@ field needs no network: trilinearly interpolated values on a grid, rendered by t
 (:func:`~lab.modules.nerf.rendering.volume_render`), optimized directly with a high learning rate. Here:
 
 - one density and one RGB value per vertex of an ``R^3`` grid over the normalized scene box ``[-1, 1]^3``
-  (colour without view dependence: the lab's scenes are Lambertian), ``sigma = softplus(raw + shift)``
-  with a near-zero start (``shift`` = :data:`DENSITY_SHIFT`; DVGO's ``alpha_init`` of 1e-2 never empties
-  space on a CPU budget), colour ``sigmoid(raw)``;
+  (colour without view dependence: the lab's scenes are Lambertian), ``sigma = gain softplus(raw + shift)``
+  (:func:`grid_density`) with a near-zero start (``shift`` = :data:`DENSITY_SHIFT`; DVGO's ``alpha_init``
+  of 1e-2 never empties space on a CPU budget), colour ``sigmoid(raw)``;
 - one interleaved table ``(R^3, 4)`` (raw density, raw RGB: a vertex is one cache line), updated by
   torch's fused Adam;
 - coarse to fine: the grid starts at ``R / 4`` and is upsampled (trilinearly) to ``R / 2`` and ``R`` at a
@@ -42,24 +42,45 @@ import torch
 
 from lab.core import Cancelled, Image, InvalidValue, Progress
 from lab.core.kernels import bands, in_parallel
-from lab.modules.nerf._kernels import _render_grid_backward_kernel, _render_grid_kernel
+from lab.modules.nerf._kernels import (DENSITY_GAIN, DENSITY_SHIFT, _render_grid_backward_kernel,
+                                      _render_grid_kernel)
 from lab.modules.nerf.evaluate import psnr_from_mse
 from lab.modules.nerf.model import ImageRendering
 from lab.modules.nerf.rendering import PackedRendering, volume_render_packed
 from lab.modules.nerf.training import REPORT_EVERY, PreviewRays, TrainingRun
 from lab.modules.nerf.values import RayBundle, SceneBounds
 
-#: ``sigma = softplus(raw + DENSITY_SHIFT)``; raw starts at 0, so sigma starts at about 0.0067.
-DENSITY_SHIFT = -5.0
 #: Steps along a ray checked together against a dilated occupancy first (see :func:`grid_candidates`).
 GROUP = 4
 #: Iterations between two refreshes of the occupancy grid.
 OCCUPANCY_EVERY = 16
 #: Samples of a smaller weight are not evaluated with gradient (behind surfaces, or nearly empty).
 SKIP_BELOW = 1e-5
+#: Training rays per pixel along each axis: a pixel's colour is fitted by the mean of ``SUPERSAMPLE^2``
+#: rays through a regular grid of points inside it (see :func:`subpixel_offsets`).
+SUPERSAMPLE = 2
 #: Cells whose dilated density is below this are empty space (about 2 % absorbed across the whole scene
-#: box). Checked from the second refresh of each grid on: the start, softplus(-5), is below it.
+#: box). Checked from the second refresh of each grid on: the start, 0.0067, is below it.
 EMPTY_SIGMA = 1e-2
+
+
+
+def grid_density(raw: torch.Tensor) -> torch.Tensor:
+    """The density ``sigma = DENSITY_GAIN softplus(raw + DENSITY_SHIFT)`` (per metre) of raw values.
+
+    The gain is the reciprocal of a voxel, about (DVGO measures the interval in voxels, Sun et al. 2022
+    section 4): a surface must reach ``sigma delta`` of a few within a step of half a voxel (sigma of some
+    hundreds per metre), which at gain 1 needs raw values in the hundreds -- Adam moves a raw value by at
+    most about its learning rate a step, so surfaces stayed soft (20 samples a ray behind their front).
+    With the gain, raw values of 10 to 20 do; near zero (``softplus(v) ~ e^v``) the gain only shifts the
+    start, which :data:`DENSITY_SHIFT` keeps at sigma 0.0067."""
+    return DENSITY_GAIN * torch.nn.functional.softplus(raw + DENSITY_SHIFT)
+
+
+def raw_density(sigma: float) -> float:
+    """The raw value whose :func:`grid_density` is ``sigma`` > 0."""
+    return math.log(math.expm1(sigma / DENSITY_GAIN)) - DENSITY_SHIFT
+
 
 _CORNERS = torch.tensor([[i, j, k] for i in (0, 1) for j in (0, 1) for k in (0, 1)])  # (8, 3)
 
@@ -150,7 +171,7 @@ class GridField(torch.nn.Module):
         dilation is a maximum along each axis in turn)."""
         r = self.resolution
         with torch.no_grad():
-            cells = self.density.reshape(r, r, r) >= math.log(math.expm1(EMPTY_SIGMA)) - DENSITY_SHIFT
+            cells = self.density.reshape(r, r, r) >= raw_density(EMPTY_SIGMA)
             for axis in range(3):
                 padded = torch.nn.functional.pad(cells, _axis_pad(axis))
                 cells = padded.narrow(axis, 0, r) | padded.narrow(axis, 1, r) | padded.narrow(axis, 2, r)
@@ -228,6 +249,10 @@ class GridOptions:
     preview_every: int
     #: Fractions of the budget at which the grid is upsampled (R / 4 -> R / 2 -> R).
     upsample_at: tuple[float, float] = (0.25, 0.5)
+    #: Rays per pixel along each axis (:data:`SUPERSAMPLE`; 1: one ray through each pixel's centre).
+    supersample: int = SUPERSAMPLE
+    #: The learning rate at the end of the budget, as a fraction of the initial one (exponential decay).
+    lr_decay: float = 0.1
 
 
 def _occupied_at(occupied: torch.Tensor, x: torch.Tensor, resolution: int, margin: int = 0) -> torch.Tensor:
@@ -291,11 +316,11 @@ def render_grid(field: GridField, origins: torch.Tensor, directions: torch.Tenso
     ray, t, x, delta = grid_candidates(origins, directions, bounds, step, occupied, jitter)
     with torch.no_grad():  # pass 1: every candidate's weight, density only, no gradient
         rows, weights = field.corners(x)
-        sigma = torch.nn.functional.softplus(field.sample(field.density, rows, weights)[:, 0] + DENSITY_SHIFT)
+        sigma = grid_density(field.sample(field.density, rows, weights)[:, 0])
         first = volume_render_packed(sigma, torch.zeros_like(x), t, delta, ray, rays, far=bounds.far)
         keep = first.weights >= SKIP_BELOW
     rows, weights = field.corners(x[keep])
-    sigma = torch.nn.functional.softplus(field.sample(field.density, rows, weights)[:, 0] + DENSITY_SHIFT)
+    sigma = grid_density(field.sample(field.density, rows, weights)[:, 0])
     rgb = torch.sigmoid(field.sample(field.color, rows, weights))
     out = volume_render_packed(sigma, rgb, t[keep], delta[keep], ray[keep], rays, far=bounds.far,
                                background=background)
@@ -414,21 +439,77 @@ def _adam(field: GridField, learning_rate: float) -> torch.optim.Adam:
         return torch.optim.Adam(field.parameters(), lr=learning_rate)
 
 
-class _Batches:
-    """Random training batches: rays through their pixels' centres, the pixels' colours, and each ray's
-    jitter along itself (a fraction of a step)."""
+def subpixel_offsets(supersample: int) -> np.ndarray:
+    """The ``s^2`` points ``(s^2, 2)`` ``(du, dv)`` (pixels, from the centre) of a regular ``s x s`` grid
+    inside a pixel, ``(k + 0.5) / s - 0.5`` along each axis: the points at which the shared renderer
+    (:func:`lab.data.scenes.render`) averages a supersampled pixel, so that the mean of the rays through
+    them is the same estimate of the pixel's area integral as the image's."""
+    k = (np.arange(supersample) + 0.5) / supersample - 0.5
+    du, dv = np.meshgrid(k, k, indexing="xy")
+    return np.stack([du.reshape(-1), dv.reshape(-1)], axis=1)
 
-    def __init__(self, rays: RayBundle, generator: torch.Generator, device: str) -> None:
+
+def pixel_axes(rays: RayBundle) -> np.ndarray:
+    """Each view's change of ray direction per pixel along ``u`` and along ``v``, ``(V, 2, 3)`` float64.
+
+    A pinhole ray's direction ``R^T K^-1 (u, v, 1)`` is affine in the pixel, so the two axes are
+    ``R^T K^-1 e_u`` and ``R^T K^-1 e_v``; they are read off the bundle, which holds each view's rays
+    through its pixel centres in row-major order (:func:`~lab.modules.nerf.steps.generate_rays`): the row
+    length is where the steps along ``u`` first jump, and the axes are the least-squares fit of the
+    whole view. Raises :class:`InvalidValue` on ``rays`` for a view that is not such a grid."""
+    views = np.asarray(rays.views)
+    count = int(views.max()) + 1 if len(views) else 0
+    axes = np.zeros((count, 2, 3))
+    for view in range(count):
+        index = np.flatnonzero(views == view)
+        d = rays.directions[index].astype(np.float64)
+        if len(index) < 4 or index[-1] - index[0] != len(index) - 1:
+            raise InvalidValue("rays", f"view {view}'s rays are not one block of the bundle: the grid's "
+                                       "supersampled training needs each view's pixel grid (generate_rays)")
+        step_u = d[1] - d[0]
+        off = np.linalg.norm(d - d[0] - np.arange(len(d))[:, None] * step_u, axis=1) > \
+            0.25 * np.linalg.norm(step_u)
+        width = int(np.argmax(off)) if off.any() else len(d)
+        if width < 2 or len(d) % width or len(d) == width:
+            raise InvalidValue("rays", f"view {view}'s {len(d)} rays are not a row-major pixel grid")
+        i, j = np.divmod(np.arange(len(d)), width)
+        design = np.stack([np.ones(len(d)), j, i], axis=1)
+        fit, *_ = np.linalg.lstsq(design, d, rcond=None)
+        if np.abs(design @ fit - d).max() > 0.05 * np.linalg.norm(fit[1]):
+            raise InvalidValue("rays", f"view {view}'s rays are not the pinhole rays of a pixel grid")
+        axes[view] = fit[1:]
+    return axes
+
+
+class _Batches:
+    """Random training batches of pixels: for each, the rays through its :func:`subpixel_offsets`
+    (``supersample`` 1: its centre), its colour, and each ray's jitter along itself (a fraction of a step)."""
+
+    def __init__(self, rays: RayBundle, generator: torch.Generator, device: str, supersample: int) -> None:
         self.origins = torch.as_tensor(rays.origins, device=device)
         self.directions = torch.as_tensor(rays.directions, device=device)
         self.colors = torch.as_tensor(rays.colors, device=device)
         self.generator = generator
         self.device = device
+        self.per_pixel = supersample ** 2
+        if supersample > 1:
+            offsets = torch.as_tensor(subpixel_offsets(supersample))                      # (s^2, 2)
+            axes = torch.as_tensor(pixel_axes(rays))                                      # (V, 2, 3)
+            self.views = torch.as_tensor(rays.views, device=device)
+            # each view's s^2 direction offsets (V, s^2, 3)
+            self.shifts = torch.einsum("sk,vkc->vsc", offsets, axes).to(torch.float32).to(device)
 
     def draw(self, count: int) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
-        batch = torch.randint(len(self.origins), (count,), generator=self.generator).to(self.device)
-        jitter = torch.rand((count, 1), generator=self.generator).to(self.device)
-        return self.origins[batch], self.directions[batch], self.colors[batch], jitter
+        """``count`` rays (``count / s^2`` pixels, at least one): origins and directions ``(count, 3)``,
+        pixel after pixel, the pixels' colours ``(count / s^2, 3)`` and the jitter ``(count, 1)``."""
+        pixels = max(1, count // self.per_pixel)
+        batch = torch.randint(len(self.origins), (pixels,), generator=self.generator).to(self.device)
+        jitter = torch.rand((pixels * self.per_pixel, 1), generator=self.generator).to(self.device)
+        origins, directions = self.origins[batch], self.directions[batch]
+        if self.per_pixel > 1:
+            directions = (directions[:, None, :] + self.shifts[self.views[batch]]).reshape(-1, 3)
+            origins = origins.repeat_interleave(self.per_pixel, dim=0)
+        return origins, directions, self.colors[batch], jitter
 
 
 def train_grid_field(rays: RayBundle, options: GridOptions, *, background: torch.Tensor,
@@ -438,13 +519,13 @@ def train_grid_field(rays: RayBundle, options: GridOptions, *, background: torch
     learning rate decaying to a tenth over the budget. Yields progress every :data:`REPORT_EVERY`
     iterations and a preview every ``preview_every``."""
     generator = torch.Generator().manual_seed(int(rng.integers(0, 2**62)))
-    batches = _Batches(rays, generator, device)
+    batches = _Batches(rays, generator, device, options.supersample)
     stages = [max(4, options.resolution // 4), max(4, options.resolution // 2), options.resolution]
     field = GridField(stages[0]).to(device)
     optimizer = _adam(field, options.learning_rate)
     losses: list[float] = []
     psnrs: list[float] = []
-    evaluated: list[int] = []
+    evaluated: list[float] = []
     elapsed, occupied = 0.0, None
     budget = options.budget_seconds
     while len(losses) < options.iterations and (budget <= 0 or elapsed < budget):
@@ -460,17 +541,18 @@ def train_grid_field(rays: RayBundle, options: GridOptions, *, background: torch
         if len(losses) % OCCUPANCY_EVERY == 0:
             occupied = field.occupancy() if len(losses) >= OCCUPANCY_EVERY else None  # not before a warm-up
         for group in optimizer.param_groups:
-            group["lr"] = options.learning_rate * 0.1 ** min(spent, 1.0)
+            group["lr"] = options.learning_rate * options.lr_decay ** min(spent, 1.0)
         origins, directions, target, jitter = batches.draw(options.batch_rays)
         color, used = batch_colors(field, origins, directions, rays.bounds, background=background,
                                    occupied=occupied, jitter=jitter)
+        color = color.reshape(len(target), batches.per_pixel, 3).mean(dim=1)  # each pixel's mean ray
         mse = torch.mean((color - target) ** 2)
         optimizer.zero_grad(set_to_none=True)
         mse.backward()
         optimizer.step()
         losses.append(float(mse.detach()))
         psnrs.append(psnr_from_mse(losses[-1]))
-        evaluated.append(used)
+        evaluated.append(used / len(origins))
         elapsed += time.perf_counter() - tick
         done = len(losses)
         last = done == options.iterations or 0 < budget <= elapsed
@@ -480,7 +562,7 @@ def train_grid_field(rays: RayBundle, options: GridOptions, *, background: torch
                 image = render_grid_image(field, preview.origins, preview.directions, rays.bounds,
                                           preview.shape, background=background)
                 values["preview"] = Image(image.color, name="training preview")
-            per_ray = np.mean(evaluated[-REPORT_EVERY:]) / options.batch_rays
+            per_ray = np.mean(evaluated[-REPORT_EVERY:])
             psnr = np.mean(psnrs[-REPORT_EVERY:])
             recent = float(np.mean(losses[-REPORT_EVERY:]))
             try:
@@ -491,7 +573,7 @@ def train_grid_field(rays: RayBundle, options: GridOptions, *, background: torch
                 break
     tail = evaluated[-max(1, len(evaluated) // 10):]
     return TrainingRun(field, np.asarray(losses), np.asarray(psnrs), elapsed,
-                       float(np.mean(tail)) / options.batch_rays)
+                       float(np.mean(tail)))
 
 
 def grid_step(field: GridField) -> float:
@@ -539,7 +621,8 @@ def grid_from(checkpoint: GridCheckpoint, device: str = "cpu") -> GridField:
                      torch.as_tensor(checkpoint.color)).to(device)
 
 
-__all__ = ["DENSITY_SHIFT", "EMPTY_SIGMA", "GROUP", "OCCUPANCY_EVERY", "SKIP_BELOW", "STOP_BELOW",
-           "CompositeGrid", "GridCheckpoint", "GridField", "GridMarch", "GridOptions", "Occupancy",
-           "batch_colors", "composite_grid", "grid_candidates", "grid_checkpoint_from", "grid_from",
-           "grid_step", "render_grid", "render_grid_image", "train_grid_field"]
+__all__ = ["DENSITY_GAIN", "DENSITY_SHIFT", "EMPTY_SIGMA", "GROUP", "OCCUPANCY_EVERY", "SKIP_BELOW",
+           "STOP_BELOW", "SUPERSAMPLE", "CompositeGrid", "GridCheckpoint", "GridField", "GridMarch",
+           "GridOptions", "Occupancy", "batch_colors", "composite_grid", "grid_candidates",
+           "grid_checkpoint_from", "grid_density", "grid_from", "grid_step", "pixel_axes", "raw_density",
+           "render_grid", "render_grid_image", "subpixel_offsets", "train_grid_field"]

@@ -23,8 +23,7 @@ import numpy as np
 import torch
 
 from lab.core import InvalidControl, Mesh
-from lab.modules.nerf.grid import DENSITY_SHIFT as GRID_DENSITY_SHIFT
-from lab.modules.nerf.grid import GridCheckpoint
+from lab.modules.nerf.grid import GridCheckpoint, grid_density
 from lab.modules.nerf.model import network_from
 from lab.modules.nerf.values import NerfCheckpoint, SceneBounds
 
@@ -46,7 +45,7 @@ def density_lattice(model: NerfCheckpoint | GridCheckpoint, resolution: int, *,
         raw = torch.as_tensor(model.density, device=device)[None, None]
         resampled = torch.nn.functional.interpolate(raw, size=(resolution,) * 3, mode="trilinear",
                                                     align_corners=True)[0, 0]
-        return torch.nn.functional.softplus(resampled + GRID_DENSITY_SHIFT).cpu().numpy()
+        return grid_density(resampled).cpu().numpy()
     net = network_from(model, device)
     axis = torch.linspace(-1.0, 1.0, resolution, device=device)
     x = torch.stack(torch.meshgrid(axis, axis, axis, indexing="ij"), dim=-1).reshape(-1, 3)

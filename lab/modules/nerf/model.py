@@ -20,6 +20,7 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
+from lab.core import InvalidValue
 from lab.modules.nerf.encoding import encoding_size, positional_encoding
 from lab.modules.nerf.rays import stratified_samples
 from lab.modules.nerf.rendering import VolumeRendering, hierarchical_samples, volume_render
@@ -137,6 +138,22 @@ class ImageRendering:
     color: np.ndarray
     depth: np.ndarray
     opacity: np.ndarray
+
+    def box_filtered(self, factor: int) -> ImageRendering:
+        """This view, rendered at ``factor`` times a resolution, at that resolution: each pixel the mean of
+        its ``factor x factor`` rendered pixels (colour, depth and opacity), i.e. of rays through a regular
+        grid of points inside it -- the estimate of the pixel's area integral that the shared renderer's
+        supersampling makes (brute-force supersampling against aliasing: Barron et al., "Mip-NeRF",
+        ICCV 2021, section 1). The view's size must divide by ``factor``."""
+        height, width = self.depth.shape
+        if factor < 1 or height % factor or width % factor:
+            raise InvalidValue("factor", f"a {width}x{height} view does not divide into {factor}x{factor} "
+                                         "blocks")
+
+        def mean(a: np.ndarray) -> np.ndarray:
+            blocks = a.reshape(height // factor, factor, width // factor, factor, *a.shape[2:])
+            return blocks.mean(axis=(1, 3), dtype=np.float64).astype(np.float32)
+        return ImageRendering(mean(self.color), mean(self.depth), mean(self.opacity))
 
 
 def render_image(net: NerfMLP, origins: torch.Tensor, directions: torch.Tensor, bounds: SceneBounds,

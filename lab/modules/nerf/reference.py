@@ -140,7 +140,8 @@ def composite_grid_reference(density: np.ndarray, color: np.ndarray, cells: np.n
     """:func:`~lab.modules.nerf.grid.composite_grid` one ray and one step at a time: walk every step
     ``t = near + (k + shift) s`` (``s = step radius / |d|``) before far, look up the occupancy vertex nearest
     the normalized point, interpolate the raw ``density`` ``(R, R, R)`` and ``color`` ``(R, R, R, 3)``
-    trilinearly between the 8 vertices around it, ``sigma = softplus(raw - 5)``, ``c = sigmoid(raw)``, and
+    trilinearly between the 8 vertices around it, ``sigma = 50 softplus(raw - 5 - ln 50)`` (the grid's
+    :func:`~lab.modules.nerf.grid.grid_density`), ``c = sigmoid(raw)``, and
     composite with the product form of eq. 3 until the transmittance falls below ``stop``. Returns colour
     ``(N, 3)``, depth, opacity and samples used ``(N,)``, float64."""
     r, side = density.shape[0], cells.shape[0]
@@ -169,7 +170,7 @@ def composite_grid_reference(density: np.ndarray, color: np.ndarray, cells: np.n
                 vertex = tuple(base + np.array(corner))
                 raw += weight * float(density[vertex])
                 rgb_raw += weight * color[vertex].astype(np.float64)
-            sigma = math.log1p(math.exp(raw - 5.0))
+            sigma = 50.0 * math.log1p(math.exp(raw - 5.0 - math.log(50.0)))
             rgb = 1.0 / (1.0 + np.exp(-rgb_raw))
             alpha = 1.0 - math.exp(-sigma * min(depth_step, bounds.far - t) * norm)
             weight = transmittance * alpha

@@ -150,3 +150,26 @@ def test_nerf_synthetic_errors_name_the_problem(tmp_path, blender_folder):
     with pytest.raises(InvalidValue, match="divide") as info:
         N.nerf_synthetic(path=str(folder), downscale=3)
     assert info.value.field == "downscale"
+
+
+def test_written_untuned_scene_reads_back_as_the_renderer_supersampled_it(tmp_path):
+    """write_nerf_synthetic's folder through nerf_synthetic: the poses it rendered, and at downscale 2 each
+    pixel is the renderer's 2 x 2 supersampled pixel (8-bit PNGs: within 2 levels where the object covers
+    the whole block, the mean of the blocks about edges within the quantization too)."""
+    from lab.modules.nerf.datasets import BLENDER_DISTANCE, untuned_scene, write_nerf_synthetic
+
+    scene = untuned_scene(0)
+    folder = write_nerf_synthetic(str(tmp_path / "untuned"), scene, size=48, views=(3, 1, 2))
+    loaded = N.nerf_synthetic(path=folder, downscale=2)
+    train = N.hemisphere_cameras(3, size=24, distance=BLENDER_DISTANCE, offset=0.0, center=np.zeros(3))
+    cameras = loaded.state["cameras"]
+    assert len(cameras) == 3 and len(loaded.truth["test_images"]) == 2
+    assert np.allclose(cameras.R, train.R, atol=1e-6) and np.allclose(cameras.t, train.t, atol=1e-6)
+    assert np.allclose(cameras.K, train.K, atol=1e-6)
+    lower, upper = scene.bounds()
+    assert np.linalg.norm(np.maximum(np.abs(lower), np.abs(upper))) < 1.5   # the Blender scenes' radius
+    for i in range(3):
+        expected = render(scene, train, i, supersample=2).image.pixels
+        read = loaded.state["images"].images[i].pixels
+        assert np.abs(read - expected).max() < 2.5 / 255
+    assert not np.allclose(loaded.state["images"].images[0].pixels, 1.0)    # the object is in view

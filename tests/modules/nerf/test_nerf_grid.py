@@ -80,7 +80,7 @@ def test_grid_skips_empty_space_and_stops_behind_a_wall():
     """An opaque slab at x in [0, 0.25] of the box: rays along +x evaluate only samples near it, see it."""
     r = 17
     raw = torch.full((r, r, r), -20.0)
-    raw[8:11] = 60.0  # vertices at x = 0, 0.125, 0.25: sigma = 55
+    raw[8:11] = N.grid.raw_density(550.0)  # vertices at x = 0, 0.125, 0.25: sigma = 550
     field = N.GridField(r, raw, torch.zeros(r, r, r, 3))
     bounds = N.SceneBounds(1.0, 3.0, np.zeros(3), 1.0)
     origins = torch.tensor([[-2.0, 0.1 * k - 0.3, 0.05] for k in range(7)])
@@ -92,9 +92,9 @@ def test_grid_skips_empty_space_and_stops_behind_a_wall():
     np.testing.assert_allclose(out.opacity.numpy(), 1.0, atol=1e-4)
     np.testing.assert_allclose(out.color.numpy(), 0.5, atol=1e-4)  # sigmoid(0)
     np.testing.assert_allclose(out.depth.numpy(), 1.94, atol=0.07)  # the wall's face at x = -0.06 .. 0
-    # of the 32 steps from near to far, 5 per ray are evaluated: at the face (empty cells skipped before it,
-    # the rest terminated behind it)
-    assert len(t) == 7 * 5 and float(t.min()) > 1.85 and float(t.max()) < 2.2
+    # of the 32 steps from near to far, 2 per ray are evaluated: at the face (empty cells skipped before it,
+    # the dilated cell's samples of no weight left out, the rest terminated behind it)
+    assert len(t) == 7 * 2 and float(t.min()) > 1.85 and float(t.max()) < 2.2
 
 
 def test_a_tiny_grid_run_through_the_steps():
@@ -182,8 +182,8 @@ def test_compiled_composite_matches_the_reference_loop(stop):
 def test_compiled_composite_stops_early_within_its_threshold_and_its_gradient_is_autograds():
     """Early termination changes a colour by at most the transmittance left; the compiled backward pass
     equals torch's autograd through the vectorized path (candidates, trilinear gathers, packed rendering)."""
-    from lab.modules.nerf.grid import (DENSITY_SHIFT, CompositeGrid, GridMarch, composite_grid,
-                                       grid_candidates, grid_step)
+    from lab.modules.nerf.grid import (CompositeGrid, GridMarch, composite_grid, grid_candidates,
+                                       grid_density, grid_step)
 
     field, bounds, origins, directions, jitter = _random_scene(seed=1)
     background = torch.tensor([1.0, 0.5, 0.2])
@@ -203,7 +203,7 @@ def test_compiled_composite_stops_early_within_its_threshold_and_its_gradient_is
     (color * upstream).sum().backward()
     ray, t, x, delta = grid_candidates(origins, directions, bounds, grid_step(field), occupied, jitter)
     rows, weights = field.corners(x)
-    sigma = torch.nn.functional.softplus(field.sample(field.density, rows, weights)[:, 0] + DENSITY_SHIFT)
+    sigma = grid_density(field.sample(field.density, rows, weights)[:, 0])
     rgb = torch.sigmoid(field.sample(field.color, rows, weights))
     oracle = N.volume_render_packed(sigma, rgb, t, delta, ray, len(origins), far=bounds.far,
                                     background=background)
@@ -211,3 +211,49 @@ def test_compiled_composite_stops_early_within_its_threshold_and_its_gradient_is
     (oracle.color * upstream).sum().backward()
     assert field.table.grad is not None and float(field.table.grad.abs().max()) > 0.01
     np.testing.assert_allclose(table.grad.numpy(), field.table.grad.numpy(), atol=1e-5)
+
+
+def test_supersampled_training_rays_are_the_rays_through_the_renderers_subpixel_points():
+    """pixel_axes read off generate_rays' bundle (non-square pixels, a shifted principal point) move each
+    pixel's centre ray to exactly the rays camera_rays casts through the points of subpixel_offsets, which
+    are the shared renderer's supersampling points ((c + 0.5) / s - 0.5)."""
+    from lab.core import Cameras, InvalidValue
+    from lab.modules.nerf.grid import pixel_axes, subpixel_offsets
+
+    assert np.allclose(subpixel_offsets(2), [[-0.25, -0.25], [0.25, -0.25], [-0.25, 0.25], [0.25, 0.25]])
+    assert np.allclose(subpixel_offsets(1), [[0.0, 0.0]])
+    cams = N.hemisphere_cameras(2, size=8, distance=3.0, offset=0.0, center=np.zeros(3))
+    K = cams.K.copy()
+    K[:, 1, 1] *= 1.3
+    K[:, 0, 2] += 0.7
+    cams = Cameras(K, cams.R, cams.t, 8, 6)
+    origins, directions = N.cameras_rays(cams)
+    views = np.repeat(np.arange(2), 48)
+    bundle = N.RayBundle(origins.reshape(-1, 3).numpy(), directions.reshape(-1, 3).numpy(),
+                         np.zeros((96, 3)), views, N.SceneBounds(2.0, 4.0, np.zeros(3), 1.0))
+    axes = pixel_axes(bundle)                                                       # (2, 2, 3)
+    centres = N.pixel_centres(8, 6).numpy()
+    for du, dv in subpixel_offsets(2):
+        _, exact = N.camera_rays(cams.K, cams.R, cams.t, centres + np.array([du, dv]))
+        moved = directions.numpy() + du * axes[:, None, 0] + dv * axes[:, None, 1]
+        assert np.allclose(moved, exact.numpy(), atol=1e-6)
+    shuffled = np.random.default_rng(0).permutation(48)
+    with pytest.raises(InvalidValue, match="pixel grid"):
+        pixel_axes(N.RayBundle(bundle.origins[:48], bundle.directions[shuffled], np.zeros((48, 3)),
+                               np.zeros(48), bundle.bounds))
+
+
+def test_box_filtering_a_rendering_averages_its_blocks():
+    from lab.core import InvalidValue
+    from lab.modules.nerf.model import ImageRendering
+
+    rng = np.random.default_rng(1)
+    fine = ImageRendering(rng.random((4, 6, 3)).astype(np.float32), rng.random((4, 6)).astype(np.float32),
+                          rng.random((4, 6)).astype(np.float32))
+    coarse = fine.box_filtered(2)
+    assert coarse.color.shape == (2, 3, 3) and coarse.depth.shape == (2, 3)
+    assert np.isclose(coarse.color[1, 2, 0], fine.color[2:4, 4:6, 0].mean())
+    assert np.isclose(coarse.opacity[0, 1], fine.opacity[0:2, 2:4].mean())
+    assert fine.box_filtered(1).color is not None and np.allclose(fine.box_filtered(1).depth, fine.depth)
+    with pytest.raises(InvalidValue, match="3x3 blocks"):
+        fine.box_filtered(3)

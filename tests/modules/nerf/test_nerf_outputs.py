@@ -14,7 +14,7 @@ from scipy.spatial import cKDTree
 from lab.core import Curve, Image, ImageSet, InvalidControl, Mesh, open_session
 from lab.modules import nerf as N
 from lab.modules.nerf import PIPELINE
-from lab.modules.nerf.grid import DENSITY_SHIFT
+from lab.modules.nerf.grid import raw_density
 
 torch.set_num_threads(1)
 
@@ -38,12 +38,12 @@ def trained():
 
 
 # --- the mesh ---------------------------------------------------------------------------------------------
-def _sphere_grid(resolution: int = 40, r0: float = 0.5, level: float = 5.0) -> N.GridCheckpoint:
+def _sphere_grid(resolution: int = 40, r0: float = 0.5, level: float = 250.0) -> N.GridCheckpoint:
     """A grid field whose density crosses ``level`` on the sphere |x| = r0 (normalized units), red where
     x > 0 and blue where x < 0 (raw colours +-6), in a scene box of centre (1, 2, 3) and radius 2."""
     axis = np.linspace(-1.0, 1.0, resolution)
     x = np.stack(np.meshgrid(axis, axis, axis, indexing="ij"), axis=-1)
-    crossing = np.log(np.expm1(level)) - DENSITY_SHIFT  # softplus(raw + shift) = level
+    crossing = raw_density(level)  # grid_density(crossing) = level, where the softplus is about linear
     raw = crossing + 40.0 * (r0 - np.linalg.norm(x, axis=-1))
     sign = np.sign(x[..., 0])[..., None]
     color = np.concatenate([6 * sign, -6 * np.ones_like(sign), -6 * sign], axis=-1)
@@ -53,7 +53,7 @@ def _sphere_grid(resolution: int = 40, r0: float = 0.5, level: float = 5.0) -> N
 
 def test_the_mesh_of_a_field_with_a_known_surface_lies_on_it_in_its_colours():
     model = _sphere_grid()
-    result = N.extract_mesh(model, resolution=40, level=5.0)
+    result = N.extract_mesh(model, resolution=40, level=250.0)
     mesh = result.mesh
     assert isinstance(mesh, Mesh) and result.vertices == len(mesh.vertices) > 1000
     assert result.faces == len(mesh.faces)

@@ -42,8 +42,8 @@ def test_pipeline_steps_in_order_and_registered():
                                                 "train_nerf", "render_held_out", "render_view", "render_path",
                                                 "extract_mesh"]
     assert all(PIPELINE.step(name).is_generator for name in ("fit_image_2d", "train_nerf", "render_path"))
-    assert [d.name for d in PIPELINE.datasets] == ["synthetic_object", "nerf_synthetic"]
-    assert PIPELINE.dataset("nerf_synthetic").takes_path
+    assert [d.name for d in PIPELINE.datasets] == ["synthetic_object", "nerf_synthetic", "sfm_reconstruction"]
+    assert PIPELINE.dataset("nerf_synthetic").takes_path and PIPELINE.dataset("sfm_reconstruction").takes_path
     written = {name for spec in PIPELINE.steps for name in spec.writes}
     dataset = {"images", "cameras", "test_cameras", "bounds"}
     assert PIPELINE.views <= written | dataset
