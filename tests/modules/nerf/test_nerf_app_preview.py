@@ -9,13 +9,10 @@ training view 0. The browser test is tests/e2e/test_e2e_nerf_preview.py."""
 
 from __future__ import annotations
 
-import contextlib
-import io
 
 import numpy as np
 import pytest
 import torch
-import viser
 import viser.transforms as vtf
 
 from modules.texture_helpers import drive
@@ -167,15 +164,6 @@ def test_cancel_goes_through_to_the_training_loop():
         wrapped.throw(Cancelled("train_nerf", "cancelled"))
     assert stop.value.value == "trained so far" and seen == [0]
     assert drive(offering_preview(loop(), follower))[1] == "trained so far"
-
-
-@pytest.fixture
-def server():
-    with contextlib.redirect_stdout(io.StringIO()):
-        srv = viser.ViserServer(host="127.0.0.1", port=0, verbose=False)
-    yield srv
-    with contextlib.redirect_stdout(io.StringIO()):
-        srv.stop()
 
 
 class FakeCamera:

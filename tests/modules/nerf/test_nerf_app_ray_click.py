@@ -4,14 +4,10 @@ a held-out picture runs render_view for that pixel; clicks elsewhere, or before 
 
 from __future__ import annotations
 
-import contextlib
-import io
 import time
 
 import numpy as np
-import pytest
 import torch
-import viser
 
 from lab.core import SessionStore
 from lab.modules.nerf import PIPELINE
@@ -24,15 +20,6 @@ torch.set_num_threads(1)
 
 LIGHT = {"train_nerf": {"method": "grid", "grid_resolution": 24, "iterations": 60, "batch_rays": 512,
                         "budget_seconds": 0.0, "preview_every": 60}}
-
-
-@pytest.fixture
-def server():
-    with contextlib.redirect_stdout(io.StringIO()):
-        srv = viser.ViserServer(host="127.0.0.1", port=0, verbose=False)
-    yield srv
-    with contextlib.redirect_stdout(io.StringIO()):
-        srv.stop()
 
 
 def test_a_click_position_is_the_pixel_that_holds_it():

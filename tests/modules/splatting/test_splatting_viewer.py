@@ -5,13 +5,10 @@ the legend names the splats and the pixel's Gaussians, and a tab opens on the se
 
 from __future__ import annotations
 
-import contextlib
-import io
 
 import numpy as np
 import pytest
 import torch
-import viser
 
 from lab.core import Cameras, Curve, GaussianSplats, Image, ImageSet, PointCloud, SessionStore
 from lab.modules import get_pipeline
@@ -32,15 +29,6 @@ def ran():
     session = store.create(pipeline, pipeline.datasets[0].name, {"train_views": 4, "test_views": 2})
     records = session.run_until(None, LIGHT)
     return store, session, records
-
-
-@pytest.fixture
-def server():
-    with contextlib.redirect_stdout(io.StringIO()):
-        srv = viser.ViserServer(host="127.0.0.1", port=0, verbose=False)
-    yield srv
-    with contextlib.redirect_stdout(io.StringIO()):
-        srv.stop()
 
 
 def test_run_all_runs_every_step_with_light_controls(ran):
