@@ -20,6 +20,7 @@ The package (this file is its only import surface):
     steps.py       the steps in pipeline order
     ply.py         the standard 3D Gaussian splatting PLY (the INRIA layout), written and read
     datasets.py    the synthetic object with surface points to start from
+    basics.py      BASICS, lesson 06's pipeline: SH colour, Sigma', alphas, compositing, one step each
 Datasets and evaluation are the NeRF module's (the same scenes, the same held-out PSNR and SSIM), plus
 the synthetic object with points (``object_with_points``).
 
@@ -51,6 +52,7 @@ from typing import Any
 from lab.core import Export, MissingInput, Pipeline
 from lab.modules.nerf import EVALUATIONS, nerf_synthetic, synthetic_object
 from lab.modules.nerf import EXPORTS as NERF_EXPORTS
+from lab.modules.splatting.basics import BASICS
 from lab.modules.splatting.contributions import PixelContributions, pixel_contributions
 from lab.modules.splatting.datasets import object_with_points, surface_points
 from lab.modules.splatting.density import LEARNING_RATES, DensityEvent, TrainedGaussians, position_lr
@@ -110,10 +112,10 @@ PIPELINE = Pipeline.build(
 )
 
 __all__ = [
-    "DILATION", "EXPORTS", "LEARNING_RATES", "MAX_GAUSSIANS", "MAX_SH_DEGREE", "MAX_TILE_PAIRS", "NEAR_PLANE",
-    "PIPELINE", "PIXEL_LIST", "PROPERTIES", "SSIM_WEIGHT", "TILE_SIZE", "VIEWS", "Binning", "DensityEvent",
-    "GaussianInImage", "PixelContributions", "Projected", "Rendering", "SplatModel", "SplatTrainingOptions",
-    "TrainedGaussians", "View", "activated_opacities", "as_model", "bin_gaussians",
+    "BASICS", "DILATION", "EXPORTS", "LEARNING_RATES", "MAX_GAUSSIANS", "MAX_SH_DEGREE", "MAX_TILE_PAIRS",
+    "NEAR_PLANE", "PIPELINE", "PIXEL_LIST", "PROPERTIES", "SSIM_WEIGHT", "TILE_SIZE", "VIEWS", "Binning",
+    "DensityEvent", "GaussianInImage", "PixelContributions", "Projected", "Rendering", "SplatModel",
+    "SplatTrainingOptions", "TrainedGaussians", "View", "activated_opacities", "as_model", "bin_gaussians",
     "composite_pixel_reference", "covariances", "image_covariances", "initial_model", "initialize_gaussians",
     "model_from_tensors", "object_with_points", "photometric_loss", "pixel_contributions", "ply_vertices",
     "position_lr", "project", "project_one_reference", "quaternion_rotations", "rasterize_image", "read_ply",
