@@ -46,16 +46,19 @@ def _array(value: object, name: str, shape: tuple[int | None, ...]) -> np.ndarra
     return array
 
 
-def gaussians_in_view(*, count: Annotated[int, Range(8, 200)] = 12, width: Annotated[int, Range(8, 200)] = 40,
-                      height: Annotated[int, Range(8, 200)] = 30, seed: int = 0) -> Loaded:
+def gaussians_in_view(*, count: Annotated[int, Range(8, 200)] = 12, opaque: Annotated[int, Range(0, 8)] = 6,
+                      width: Annotated[int, Range(8, 200)] = 40, height: Annotated[int, Range(8, 200)] = 30,
+                      seed: int = 0) -> Loaded:
     """``count`` random Gaussians 3 to 6 units in front of a ``width`` x ``height`` camera (focal length
     ``width``, turned a little from the world axes), inside its view, of random orientation and scale
-    (quaternions not normalized); the first six large, opaque and overlapping at the image centre (so that
-    pixels there stop early). Degree-0 SH coefficients from -3.5 to 3.5 (colours under 0 and over 1);
-    white background.
+    (quaternions not normalized, opacities 0.3 to 0.95); the first ``opaque`` of them large (about a unit),
+    of opacity 0.99 and overlapping at the image centre, so that with 3 or more the pixels there stop early
+    (two leave T just over 1e-4, the third would take it under). Degree-0 SH coefficients from -3.5 to 3.5
+    (colours under 0 and over 1); white background.
 
     Args:
         count: Gaussians N.
+        opaque: how many of them are the large opaque ones at the centre.
         width: image width in pixels.
         height: image height in pixels.
         seed: the random seed.
@@ -69,14 +72,14 @@ def gaussians_in_view(*, count: Annotated[int, Range(8, 200)] = 12, width: Annot
     z = rng.uniform(3.0, 6.0, count)
     ray = np.stack([rng.uniform(-0.4, 0.4, count) * width / K[0, 0],
                     rng.uniform(-0.4, 0.4, count) * height / K[1, 1], np.ones(count)], axis=1)
-    ray[:6, :2] = rng.normal(0.0, 0.01, (6, 2))
+    ray[:opaque, :2] = rng.normal(0.0, 0.01, (opaque, 2))
     camera = ray * z[:, None]
     means = (camera - t) @ R
     quats = rng.normal(size=(count, 4)) * rng.uniform(0.5, 2.0, (count, 1))       # not normalized
     log_scales = rng.uniform(-3.5, -1.5, (count, 3))
-    log_scales[:6] = np.log([1.0, 0.8, 0.9])
+    log_scales[:opaque] = np.log([1.0, 0.8, 0.9])
     opacities = rng.uniform(0.3, 0.95, count)
-    opacities[:6] = 0.99
+    opacities[:opaque] = 0.99
     state = {"means": means, "log_scales": log_scales, "quats": quats, "opacities": opacities,
              "sh_dc": rng.uniform(-3.5, 3.5, (count, 3)), "R": R, "t": t, "K": K, "width": int(width),
              "height": int(height), "background": np.ones(3)}
