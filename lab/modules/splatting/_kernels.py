@@ -1,25 +1,36 @@
-"""The compiled loops of the fast rasterizer: front-to-back compositing per tile and its backward pass.
+"""The compiled loops of the fast rasterizer: front-to-back compositing per tile, its backward pass, tile
+binning, and the projection and colours for rendering without gradients.
 
-Both follow the paper's code (Kerbl et al. 2023, ``renderCUDA`` in ``forward.cu`` and ``backward.cu``), one
-tile after another instead of one CUDA block per tile, in the dtype of their inputs (float32 to train,
-float64 in the tests). Within a tile they go Gaussian by Gaussian through its depth-sorted list, each pixel
-keeping its own running state, and each Gaussian visits only the pixels of its rows' chords of the ellipse
-where its alpha can reach 1/255 (:func:`_row_span`; the exact-footprint culling of "StopThePop",
-Radl et al. 2024, and gsplat's tile intersection, done per row instead of per tile): the square 3-sigma
-rectangle lists a Gaussian in tiles its ellipse may miss, and most pixels of the tiles it does touch lie
-outside it. The per-pixel arithmetic and its order are the paper's per-pixel loop's, so the image does not
-depend on the walk. The backward pass walks each pixel's list back to front from its last contributor,
-recovering ``T_i`` by dividing by ``1 - alpha_i`` and the colour behind each Gaussian as a running sum, as
-the paper's code does; unlike that code, it takes the clamp ``alpha <= 0.99`` into account (no gradient
-through a clamped alpha: gsplat does the same), so it is the derivative autograd gives the reference.
-Gradients are summed per Gaussian over a tile, then into one buffer per band of tiles (bands run on
-different threads). Each tile's list comes packed in list order (:func:`pack_pairs`: reads one after the
-other instead of gathers), with an exponent below which a Gaussian's alpha is surely under 1/255, which
-bounds the chords and spares the ``exp`` of the pixels outside them.
+They follow the paper's code (Kerbl et al. 2023, ``renderCUDA`` in ``forward.cu`` and ``backward.cu``), one
+tile after another instead of one CUDA block per tile. The forward pass computes in the dtype of its inputs
+(float32 to train and render, float64 in the tests; its constants come as an array of that dtype,
+:func:`kernel_constants`, since a Python float literal would make the arithmetic float64). Within a tile
+it goes Gaussian by Gaussian through its depth-sorted list, each pixel keeping its own transmittance,
+colour, last contributor and whether it is done; each Gaussian updates the rows of the tile that its
+ellipse where alpha can reach 1/255 spans (:func:`footprint_half_heights`), all their pixels in one loop
+without branches: the per-pixel decisions (inside the footprint, alpha >= 1/255, T would fall below
+1e-4, done) are selects, and the exponential is written out (:func:`_exp_nonpositive`, a C ``exp`` call
+would not vectorize), so the compiler runs the loop on vector lanes, 8 float32 pixels at a time. The
+per-pixel arithmetic and its order are the paper's per-pixel loop's. Measured on a trained model (8k
+Gaussians, 200 x 200, one core): 7.3 ms for the earlier scalar walk over each row's chord of the ellipse
+(about 13 ns a visited pixel, mostly mispredicted branches at the chords' ends and the C ``exp``), 4.2 ms
+for the vectorized rows although they visit 3.6x as many pixels. The backward pass walks each pixel's list
+back to front from its last contributor over the rows' chords (:func:`_row_span`, the exact-footprint
+culling of "StopThePop", Radl et al. 2024, and gsplat's tile intersection, done per row), recovering
+``T_i`` by dividing by ``1 - alpha_i`` and the colour behind each Gaussian as a running sum, as the
+paper's code does, with the forward pass's arithmetic for every decision so the two agree on each pixel;
+unlike that code, it takes the clamp ``alpha <= 0.99`` into account (no gradient through a clamped alpha:
+gsplat does the same), so it is the derivative autograd gives the reference. Gradients are summed per
+Gaussian over a tile, then into one buffer per band of tiles (bands run on different threads). Each
+tile's list comes packed in list order (:func:`pack_pairs`: reads one after the other instead of
+gathers), with an exponent below which a Gaussian's alpha is surely under 1/255.
 """
 
 from __future__ import annotations
 
+import math
+
+import numba
 import numpy as np
 
 from lab.core.kernels import kernel, register_warm_up
@@ -41,12 +52,29 @@ def alpha_floor_exponents(opacities: np.ndarray) -> np.ndarray:
 
 
 def pack_pairs(ids: np.ndarray, means2d: np.ndarray, conics: np.ndarray, opacities: np.ndarray) -> np.ndarray:
-    """``(pairs, 7)`` in the dtype of ``means2d``: per listed Gaussian ``ids[k]`` its mean (2), conic (3),
-    opacity and :func:`alpha_floor_exponents` (an exponent below which its alpha is surely under 1/255), laid
-    out in list order so the kernels read them one after the other."""
+    """``(pairs, 8)`` in the dtype of ``means2d``: per listed Gaussian ``ids[k]`` its mean (2), conic (3),
+    opacity, :func:`alpha_floor_exponents` (an exponent below which its alpha is surely under 1/255) and
+    :func:`footprint_half_heights` (how far above and below its mean that ellipse reaches), laid out in
+    list order so the kernels read them one after the other."""
     skip = alpha_floor_exponents(opacities)
-    table = np.concatenate([means2d, conics, opacities[:, None], skip[:, None].astype(means2d.dtype)], axis=1)
+    reach = footprint_half_heights(conics, -2.0 * skip)
+    dtype = means2d.dtype
+    table = np.concatenate([means2d, conics, opacities[:, None], skip[:, None].astype(dtype),
+                            reach[:, None].astype(dtype)], axis=1)
     return np.ascontiguousarray(table[ids])
+
+
+def footprint_half_heights(conics: np.ndarray, limits: np.ndarray) -> np.ndarray:
+    """(N,) float64: the half-height ``sqrt(limit Sigma_yy)`` of each ellipse ``d^T conic d <= limit``
+    (``Sigma_yy = a / (a c - b^2)``, the conic's inverse), widened by a millionth and 1e-3 px so that
+    rounding (float32 included) never leaves a row of it out; ``inf`` (every row) where the conic is not
+    positive definite in float64 or not finite, ``-inf`` (none) for a negative limit."""
+    a, b, c = (conics[:, k].astype(np.float64) for k in range(3))
+    det = a * c - b * b
+    with np.errstate(all="ignore"):
+        reach = np.sqrt(np.asarray(limits, np.float64) * a / det) * (1.0 + 1e-6) + 1e-3
+        definite = (a > 0.0) & (det > 0.0) & np.isfinite(reach)
+    return np.where(np.asarray(limits) < 0.0, -np.inf, np.where(definite, reach, np.inf))
 
 
 @kernel
@@ -154,25 +182,63 @@ def _row_range(my: float, ca: float, cb: float, cc: float, limit: float, y0: int
     return first, stop
 
 
+@numba.njit(inline="always", nogil=True, cache=True)  # inlined: a call would keep the loop off vector lanes
+def _exp_nonpositive(x: float, sixteenth: float, c: tuple) -> float:
+    """``exp(x)`` for ``-5.6 <= x <= 0`` (the exponents of a Gaussian's alpha above 1/255), in the dtype of
+    ``x``, written out so that the compositing loop around it vectorizes (a call to the C library's
+    ``exp`` does not): ``e^y``, ``y = x / 16``, by its Taylor series to degree 13 (Estrin's scheme, the
+    coefficients ``c = (1/0!, ..., 1/13!)``), raised to the 16th power by four squarings. Within a few
+    1e-15 relative of ``exp`` in float64 (the truncation ``0.35^14 / 14!`` is 5e-18; the squarings
+    multiply the rounding by 16), about 1e-6 in float32."""
+    y = x * sixteenth
+    y2 = y * y
+    y4 = y2 * y2
+    y8 = y4 * y4
+    low = ((c[0] + y * c[1]) + y2 * (c[2] + y * c[3])) + y4 * ((c[4] + y * c[5]) + y2 * (c[6] + y * c[7]))
+    high = ((c[8] + y * c[9]) + y2 * (c[10] + y * c[11])) + y4 * (c[12] + y * c[13])
+    e = low + y8 * high
+    e = e * e
+    e = e * e
+    e = e * e
+    return e * e
+
+
+def kernel_constants(dtype: type | np.dtype) -> np.ndarray:
+    """The compositing's constants (21,) in ``dtype``, so that its arithmetic stays in the dtype of its
+    inputs (a Python float literal would make it float64): 0, 1/2, 1, :data:`ALPHA_MAX`, :data:`ALPHA_MIN`,
+    :data:`T_MIN`, 1/16, then :func:`_exp_nonpositive`'s fourteen coefficients ``1/k!``."""
+    values = [0.0, 0.5, 1.0, ALPHA_MAX, ALPHA_MIN, T_MIN, 1.0 / 16.0]
+    return np.array(values + [1.0 / math.factorial(k) for k in range(14)], dtype)
+
+
 @kernel
 def _rasterize_forward_kernel(tile_start: int, tile_stop: int, ranges: np.ndarray, ids: np.ndarray,
-                              packed: np.ndarray, colors: np.ndarray, background: np.ndarray, tile_size: int,
-                              tiles_x: int, image: np.ndarray, final_t: np.ndarray,
-                              n_contrib: np.ndarray) -> None:
+                              packed: np.ndarray, colors: np.ndarray, background: np.ndarray,
+                              constants: np.ndarray, tile_size: int, tiles_x: int, image: np.ndarray,
+                              final_t: np.ndarray, n_contrib: np.ndarray) -> None:
     """Composite tiles ``tile_start .. tile_stop`` (row-major) into ``image`` (H, W, 3); ``final_t`` (H, W)
     the transmittance left, ``n_contrib`` (H, W) how far into its tile's list each pixel read (1 past its
-    last contributor). ``packed`` (pairs, 7) holds each listed Gaussian's mean, conic, opacity and the
-    exponent below which its alpha is surely under 1/255 (:func:`pack_pairs`), in list order.
+    last contributor). ``packed`` (pairs, 8) holds each listed Gaussian's mean, conic, opacity, the
+    exponent below which its alpha is surely under 1/255 and the half-height of that ellipse
+    (:func:`pack_pairs`), in list order; ``constants`` is :func:`kernel_constants` of the dtype the
+    arithmetic runs in (the inputs').
 
-    Gaussian by Gaussian through the tile's list, each visiting only the pixels of its rows' chords of the
-    ellipse where its alpha can reach 1/255 (:func:`_row_span`), each pixel keeping its own transmittance
-    and colour; the per-pixel arithmetic and its order are those of the paper's per-pixel loop, so the
-    image is the same to the bit. A pixel is done at the Gaussian that would take its transmittance below
-    1e-4, the tile when all its pixels are."""
+    Gaussian by Gaussian through the tile's list, each pixel keeping its own transmittance, colour, last
+    contributor and whether it is done; each Gaussian updates the rows of the tile its ellipse reaches,
+    all their pixels in one branch-free loop (the decisions as selects, so it runs on vector lanes), the
+    per-pixel arithmetic and its order the paper's per-pixel loop's. A pixel is done at the Gaussian that
+    would take its transmittance below 1e-4, the tile when all its pixels are."""
     height, width = final_t.shape
-    size = tile_size * tile_size
-    trans, red, green, blue = np.empty(size), np.empty(size), np.empty(size), np.empty(size)
-    last, done = np.empty(size, np.int64), np.empty(size, np.bool_)
+    zero, half, one = constants[0], constants[1], constants[2]
+    alpha_max, alpha_min, t_min, sixteenth = constants[3], constants[4], constants[5], constants[6]
+    c = (constants[7], constants[8], constants[9], constants[10], constants[11], constants[12],
+         constants[13], constants[14], constants[15], constants[16], constants[17], constants[18],
+         constants[19], constants[20])
+    size, dtype = tile_size * tile_size, constants.dtype
+    # the tile's state, one array each (allocated here: the compiler then knows they do not overlap)
+    trans, red, green = np.empty(size, dtype), np.empty(size, dtype), np.empty(size, dtype)
+    blue, done = np.empty(size, dtype), np.empty(size, dtype)        # done: 1 once T would fall below 1e-4
+    xs, ys, last = np.empty(size, dtype), np.empty(size, dtype), np.empty(size, np.int64)
     for tile in range(tile_start, tile_stop):
         ty, tx = tile // tiles_x, tile % tiles_x
         x0, y0 = tx * tile_size, ty * tile_size
@@ -180,44 +246,52 @@ def _rasterize_forward_kernel(tile_start: int, tile_stop: int, ranges: np.ndarra
         tw = x1 - x0
         alive = tw * (y1 - y0)
         for j in range(alive):
-            trans[j], red[j], green[j], blue[j], last[j], done[j] = 1.0, 0.0, 0.0, 0.0, 0, False
+            trans[j], red[j], green[j], blue[j], done[j], last[j] = one, zero, zero, zero, zero, 0
+            xs[j] = x0 + j % tw
+            ys[j] = y0 + j // tw
         start, stop = ranges[tile, 0], ranges[tile, 1]
         for k in range(start, stop):
             if alive == 0:
                 break
-            mx, my, ca, cb, cc, opacity, skip = (packed[k, 0], packed[k, 1], packed[k, 2], packed[k, 3],
-                                                 packed[k, 4], packed[k, 5], packed[k, 6])
-            if skip > 0.0:                      # alpha under 1/255 everywhere
+            skip = packed[k, 6]
+            if skip > zero:                     # alpha under 1/255 everywhere
                 continue
+            mx, my, ca, cb, cc, opacity = (packed[k, 0], packed[k, 1], packed[k, 2], packed[k, 3],
+                                           packed[k, 4], packed[k, 5])
+            reach = packed[k, 7]
             i = ids[k]
             red_i, green_i, blue_i = colors[i, 0], colors[i, 1], colors[i, 2]
-            row_first, row_stop = _row_range(my, ca, cb, cc, -2.0 * skip, y0, y1)
-            for py in range(row_first, row_stop):
-                first, after = _row_span(mx, my, ca, cb, cc, -2.0 * skip, py, x0, x1)
-                dy = my - py
-                for px in range(first, after):
-                    j = (py - y0) * tw + px - x0
-                    if done[j]:
-                        continue
-                    dx = mx - px
-                    power = -0.5 * (ca * dx * dx + cc * dy * dy) - cb * dx * dy
-                    if power > 0.0 or power < skip:
-                        continue
-                    alpha = min(ALPHA_MAX, opacity * np.exp(power))
-                    if alpha < ALPHA_MIN:
-                        continue
-                    T = trans[j]
-                    next_t = T * (1.0 - alpha)
-                    if next_t < T_MIN:
-                        done[j] = True
-                        alive -= 1
-                        continue
-                    weight = alpha * T
-                    red[j] += red_i * weight
-                    green[j] += green_i * weight
-                    blue[j] += blue_i * weight
-                    trans[j] = next_t
-                    last[j] = k - start + 1
+            low, high = np.floor(my - reach), np.ceil(my + reach)      # NaN or infinite: every row
+            first = y0 if not low > y0 else (y1 if low > y1 else int(low))
+            after = y1 if not high + 1 < y1 else (y0 if high + 1 < y0 else int(high) + 1)
+            if first >= after:
+                continue
+            lo, hi = (first - y0) * tw, (after - y0) * tw
+            # the rows as views from their first pixel (indices from 0: the loop then vectorizes)
+            t_, r_, g_, b_ = trans[lo:hi], red[lo:hi], green[lo:hi], blue[lo:hi]
+            d_, l_, x_, y_ = done[lo:hi], last[lo:hi], xs[lo:hi], ys[lo:hi]
+            order = k - start + 1
+            ended = 0
+            for j in range(hi - lo):
+                dx = mx - x_[j]
+                dy = my - y_[j]
+                power = -half * (ca * dx * dx + cc * dy * dy) - cb * dx * dy
+                inside = (skip <= power) & (power <= zero)
+                alpha = min(alpha_max, opacity * _exp_nonpositive(power if inside else zero, sixteenth, c))
+                T = t_[j]
+                next_t = T * (one - alpha)
+                live = inside & (alpha >= alpha_min) & (d_[j] == zero)
+                ends = live & (next_t < t_min)
+                used = live & (next_t >= t_min)
+                weight = alpha * T if used else zero
+                r_[j] += red_i * weight
+                g_[j] += green_i * weight
+                b_[j] += blue_i * weight
+                t_[j] = next_t if used else T
+                l_[j] = order if used else l_[j]
+                d_[j] = one if ends else d_[j]
+                ended += 1 if ends else 0
+            alive -= ended
         for py in range(y0, y1):
             for px in range(x0, x1):
                 j = (py - y0) * tw + px - x0
@@ -231,18 +305,27 @@ def _rasterize_forward_kernel(tile_start: int, tile_stop: int, ranges: np.ndarra
 
 @kernel
 def _rasterize_backward_kernel(tile_start: int, tile_stop: int, ranges: np.ndarray, ids: np.ndarray,
-                               packed: np.ndarray, colors: np.ndarray, background: np.ndarray, tile_size: int,
-                               tiles_x: int, final_t: np.ndarray, n_contrib: np.ndarray,
-                               grad_image: np.ndarray, grads: np.ndarray) -> None:
+                               packed: np.ndarray, colors: np.ndarray, background: np.ndarray,
+                               constants: np.ndarray, tile_size: int, tiles_x: int, final_t: np.ndarray,
+                               n_contrib: np.ndarray, grad_image: np.ndarray, grads: np.ndarray) -> None:
     """Add to ``grads`` (N, 9) the gradients of the loss (whose gradient in the image is ``grad_image``)
     with respect to each Gaussian's mean (2), conic (3), colour (3) and opacity (1), over tiles
     ``tile_start .. tile_stop``.
 
-    Gaussian by Gaussian back to front from the tile's last contributor, over its rows' chords as in the
-    forward pass; each pixel keeps its transmittance and the colour behind; each Gaussian's gradient is
-    summed over the tile before it is added to ``grads``."""
+    Gaussian by Gaussian back to front from the tile's last contributor, over its rows' chords of the
+    ellipse (:func:`_row_span`, widened by a hundred-thousandth); each pixel keeps its transmittance and
+    the colour behind; each Gaussian's gradient is summed over the tile before it is added to ``grads``.
+    Which Gaussians a pixel composites is decided by the forward pass's arithmetic (its ``constants``,
+    its exponential, the inputs' dtype), so the two passes agree on every pixel; the gradients are
+    summed in float64."""
     height, width = final_t.shape
     size = tile_size * tile_size
+    zero, half = constants[0], constants[1]
+    alpha_max, alpha_min, sixteenth = constants[3], constants[4], constants[6]
+    c = (constants[7], constants[8], constants[9], constants[10], constants[11], constants[12],
+         constants[13], constants[14], constants[15], constants[16], constants[17], constants[18],
+         constants[19], constants[20])
+    xs, ys = np.empty(tile_size, constants.dtype), np.empty(tile_size, constants.dtype)
     state = np.empty((size, 11))         # T, colour behind (3), last alpha, last colour (3), dL/dC (3)
     behind_bg, reach = np.empty(size), np.empty(size, np.int64)
     g = np.empty(9)
@@ -251,6 +334,8 @@ def _rasterize_backward_kernel(tile_start: int, tile_stop: int, ranges: np.ndarr
         x0, y0 = tx * tile_size, ty * tile_size
         x1, y1 = min(width, x0 + tile_size), min(height, y0 + tile_size)
         tw = x1 - x0
+        for m in range(tile_size):
+            xs[m], ys[m] = x0 + m, y0 + m
         start = ranges[tile, 0]
         deepest = 0
         for py in range(y0, y1):
@@ -267,27 +352,28 @@ def _rasterize_backward_kernel(tile_start: int, tile_stop: int, ranges: np.ndarr
         for k in range(start + deepest - 1, start - 1, -1):
             mx, my, ca, cb, cc, opacity, skip = (packed[k, 0], packed[k, 1], packed[k, 2], packed[k, 3],
                                                  packed[k, 4], packed[k, 5], packed[k, 6])
-            if skip > 0.0:
+            if skip > zero:
                 continue
             i = ids[k]
             red, green, blue = colors[i, 0], colors[i, 1], colors[i, 2]
             g[:] = 0.0
-            row_first, row_stop = _row_range(my, ca, cb, cc, -2.0 * skip, y0, y1)
+            limit = -2.0 * skip * (1.0 + 1e-5) + 1e-5
+            row_first, row_stop = _row_range(my, ca, cb, cc, limit, y0, y1)
             for py in range(row_first, row_stop):
-                first, after = _row_span(mx, my, ca, cb, cc, -2.0 * skip, py, x0, x1)
-                dy = my - py
+                first, after = _row_span(mx, my, ca, cb, cc, limit, py, x0, x1)
+                dy = my - ys[py - y0]
                 for px in range(first, after):
                     j = (py - y0) * tw + px - x0
                     if k - start >= reach[j]:
                         continue
-                    dx = mx - px
-                    power = -0.5 * (ca * dx * dx + cc * dy * dy) - cb * dx * dy
-                    if power > 0.0 or power < skip:
+                    dx = mx - xs[px - x0]
+                    power = -half * (ca * dx * dx + cc * dy * dy) - cb * dx * dy
+                    if not (skip <= power <= zero):
                         continue
-                    G = np.exp(power)
+                    G = _exp_nonpositive(power, sixteenth, c)
                     raw = opacity * G
-                    alpha = min(ALPHA_MAX, raw)
-                    if alpha < ALPHA_MIN:
+                    alpha = min(alpha_max, raw)
+                    if alpha < alpha_min:
                         continue
                     s = state[j]
                     T = s[0] / (1.0 - alpha)
@@ -304,7 +390,7 @@ def _rasterize_backward_kernel(tile_start: int, tile_stop: int, ranges: np.ndarr
                     g[5] += weight * dr
                     g[6] += weight * dg
                     g[7] += weight * db
-                    if raw > ALPHA_MAX:        # clamped: alpha does not depend on the parameters here
+                    if raw > alpha_max:        # clamped: alpha does not depend on the parameters here
                         continue
                     d_alpha = T * ((red - acc_r) * dr + (green - acc_g) * dg + (blue - acc_b) * db)
                     d_alpha += behind_bg[j] / (1.0 - alpha)
@@ -319,6 +405,101 @@ def _rasterize_backward_kernel(tile_start: int, tile_stop: int, ranges: np.ndarr
                 grads[i, m] += g[m]
 
 
+@kernel
+def _preprocess_kernel(means: np.ndarray, log_scales: np.ndarray, quats: np.ndarray, logits: np.ndarray,
+                       sh: np.ndarray, degree: int, basis_constants: np.ndarray, view: np.ndarray,
+                       width: int, height: int, tile_size: int, near: float, dilation: float,
+                       means2d: np.ndarray, conics: np.ndarray, depths: np.ndarray, radii: np.ndarray,
+                       rects: np.ndarray, colors: np.ndarray, opacities: np.ndarray) -> None:
+    """The projection and colours of :func:`.gaussians.project`, :func:`.gaussians.view_colors` and the
+    opacities' sigmoid in one compiled pass, for rendering without gradients (where torch's per-operation
+    overhead on (N,) vectors is most of the time): per Gaussian, in float64, the same formulas in the same
+    order (Kerbl et al. 2023 eq. 5 and 6, the code's ``computeCov2D``, ``getRect`` and
+    ``computeColorFromSH``). ``view`` (16,) is ``R`` (9, row-major), ``t`` (3), ``fx, fy, cx, cy``;
+    ``basis_constants`` the SH constants ``C0, C1, C2 (5), C3 (7)``. Writes every output row (N of
+    each)."""
+    W, t = view[0:9], view[9:12]
+    fx, fy, cx, cy = view[12], view[13], view[14], view[15]
+    centre_x = -(W[0] * t[0] + W[3] * t[1] + W[6] * t[2])        # -R^T t
+    centre_y = -(W[1] * t[0] + W[4] * t[1] + W[7] * t[2])
+    centre_z = -(W[2] * t[0] + W[5] * t[1] + W[8] * t[2])
+    tan_x, tan_y = 0.5 * width / fx, 0.5 * height / fy
+    u_low, u_high = -(cx / fx + 0.3 * tan_x), (width - cx) / fx + 0.3 * tan_x
+    v_low, v_high = -(cy / fy + 0.3 * tan_y), (height - cy) / fy + 0.3 * tan_y
+    tiles_x, tiles_y = (width + tile_size - 1) // tile_size, (height + tile_size - 1) // tile_size
+    k = basis_constants
+    for n in range(len(means)):
+        mx, my, mz = np.float64(means[n, 0]), np.float64(means[n, 1]), np.float64(means[n, 2])
+        x = W[0] * mx + W[1] * my + W[2] * mz + t[0]
+        y = W[3] * mx + W[4] * my + W[5] * mz + t[1]
+        z = W[6] * mx + W[7] * my + W[8] * mz + t[2]
+        u = min(max(x / z, u_low), u_high)
+        v = min(max(y / z, v_low), v_high)
+        fx_z, fy_z = fx / z, fy / z
+        T00, T01, T02 = fx_z * (W[0] - u * W[6]), fx_z * (W[1] - u * W[7]), fx_z * (W[2] - u * W[8])
+        T10, T11, T12 = fy_z * (W[3] - v * W[6]), fy_z * (W[4] - v * W[7]), fy_z * (W[5] - v * W[8])
+        qw, qx, qy, qz = (np.float64(quats[n, 0]), np.float64(quats[n, 1]), np.float64(quats[n, 2]),
+                          np.float64(quats[n, 3]))
+        norm = np.sqrt(qw * qw + qx * qx + qy * qy + qz * qz)
+        qw, qx, qy, qz = qw / norm, qx / norm, qy / norm, qz / norm
+        R00, R01, R02 = 1 - 2 * (qy * qy + qz * qz), 2 * (qx * qy - qw * qz), 2 * (qx * qz + qw * qy)
+        R10, R11, R12 = 2 * (qx * qy + qw * qz), 1 - 2 * (qx * qx + qz * qz), 2 * (qy * qz - qw * qx)
+        R20, R21, R22 = 2 * (qx * qz - qw * qy), 2 * (qy * qz + qw * qx), 1 - 2 * (qx * qx + qy * qy)
+        s0, s1, s2 = np.exp(np.float64(log_scales[n, 0])), np.exp(np.float64(log_scales[n, 1])), \
+            np.exp(np.float64(log_scales[n, 2]))
+        V00, V01, V02 = ((T00 * R00 + T01 * R10 + T02 * R20) * s0, (T00 * R01 + T01 * R11 + T02 * R21) * s1,
+                         (T00 * R02 + T01 * R12 + T02 * R22) * s2)
+        V10, V11, V12 = ((T10 * R00 + T11 * R10 + T12 * R20) * s0, (T10 * R01 + T11 * R11 + T12 * R21) * s1,
+                         (T10 * R02 + T11 * R12 + T12 * R22) * s2)
+        a = V00 * V00 + V01 * V01 + V02 * V02 + dilation
+        b = V00 * V10 + V01 * V11 + V02 * V12
+        c = V10 * V10 + V11 * V11 + V12 * V12 + dilation
+        safe_z = z if z > near else 1.0
+        u2d, v2d = fx * x / safe_z + cx, fy * y / safe_z + cy
+        det = a * c - b * b
+        ok = z > near and det > 0.0
+        safe_det = det if ok else 1.0
+        means2d[n, 0], means2d[n, 1] = u2d, v2d
+        conics[n, 0], conics[n, 1], conics[n, 2] = c / safe_det, -b / safe_det, a / safe_det
+        depths[n] = z
+        mid = 0.5 * (a + c)
+        lambda_max = mid + np.sqrt(max(mid * mid - det, 0.1))
+        radius = int(np.ceil(3.0 * np.sqrt(max(lambda_max, 0.0)))) if ok else 0
+        # clamped as floats before the conversion (a float beyond int64 has no defined conversion)
+        x0 = int(min(max(np.floor((u2d - radius) / tile_size), 0.0), tiles_x))
+        y0 = int(min(max(np.floor((v2d - radius) / tile_size), 0.0), tiles_y))
+        x1 = int(min(max(np.floor((u2d + radius + tile_size - 1) / tile_size), 0.0), tiles_x))
+        y1 = int(min(max(np.floor((v2d + radius + tile_size - 1) / tile_size), 0.0), tiles_y))
+        if (x1 - x0) * (y1 - y0) == 0:
+            radius = 0
+        if radius == 0:
+            x0 = y0 = x1 = y1 = 0
+        radii[n] = radius
+        rects[n, 0], rects[n, 1], rects[n, 2], rects[n, 3] = x0, y0, x1, y1
+        # the colour seen from the camera centre (unit direction, clamped norm as view_colors)
+        dx, dy, dz = mx - centre_x, my - centre_y, mz - centre_z
+        length = max(np.sqrt(dx * dx + dy * dy + dz * dz), 1e-12)
+        dx, dy, dz = dx / length, dy / length, dz / length
+        for ch in range(3):
+            total = k[0] * sh[n, 0, ch] + 0.5
+            if degree >= 1:
+                total += -k[1] * dy * sh[n, 1, ch] + k[1] * dz * sh[n, 2, ch] - k[1] * dx * sh[n, 3, ch]
+            if degree >= 2:
+                xx, yy, zz = dx * dx, dy * dy, dz * dz
+                total += (k[2] * dx * dy * sh[n, 4, ch] + k[3] * dy * dz * sh[n, 5, ch]
+                          + k[4] * (2 * zz - xx - yy) * sh[n, 6, ch] + k[5] * dx * dz * sh[n, 7, ch]
+                          + k[6] * (xx - yy) * sh[n, 8, ch])
+                if degree >= 3:
+                    total += (k[7] * dy * (3 * xx - yy) * sh[n, 9, ch] + k[8] * dx * dy * dz * sh[n, 10, ch]
+                              + k[9] * dy * (4 * zz - xx - yy) * sh[n, 11, ch]
+                              + k[10] * dz * (2 * zz - 3 * xx - 3 * yy) * sh[n, 12, ch]
+                              + k[11] * dx * (4 * zz - xx - yy) * sh[n, 13, ch]
+                              + k[12] * dz * (xx - yy) * sh[n, 14, ch]
+                              + k[13] * dx * (xx - 3 * yy) * sh[n, 15, ch])
+            colors[n, ch] = max(total, 0.0)
+        opacities[n] = 1.0 / (1.0 + np.exp(-np.float64(logits[n])))
+
+
 def _warm_up() -> None:
     """Compile the kernels for float32 (training's dtype) on a one-tile image with one Gaussian."""
     f4 = np.float32
@@ -326,9 +507,10 @@ def _warm_up() -> None:
     packed = pack_pairs(ids, np.array([[4.0, 4.0]], f4), np.array([[0.2, 0.0, 0.2]], f4), np.array([0.5], f4))
     colors, background = np.full((1, 3), 0.5, f4), np.ones(3, f4)
     image, final_t, n_contrib = np.zeros((8, 8, 3), f4), np.ones((8, 8), f4), np.zeros((8, 8), np.int64)
-    _rasterize_forward_kernel(0, 1, ranges, ids, packed, colors, background, 16, 1, image, final_t, n_contrib)
-    _rasterize_backward_kernel(0, 1, ranges, ids, packed, colors, background, 16, 1, final_t, n_contrib,
-                               np.ones((8, 8, 3), f4), np.zeros((1, 9), f4))
+    _rasterize_forward_kernel(0, 1, ranges, ids, packed, colors, background, kernel_constants(f4), 16, 1,
+                              image, final_t, n_contrib)
+    _rasterize_backward_kernel(0, 1, ranges, ids, packed, colors, background, kernel_constants(f4), 16, 1,
+                               final_t, n_contrib, np.ones((8, 8, 3), f4), np.zeros((1, 9), f4))
     _bin_kernel(ids, np.array([[0, 0, 1, 1]], np.int64), np.full((1, 2), 4.0), np.array([[0.2, 0.0, 0.2]]),
                 np.ones(1), True, 16, 8, 8, 1, np.zeros((1, 2), np.int64), np.zeros(1, np.int64),
                 np.zeros(1, np.bool_))

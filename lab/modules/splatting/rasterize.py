@@ -24,11 +24,14 @@ from typing import Any
 import numpy as np
 import torch
 
-from lab.core import CapacityExceeded
+from lab.core import CapacityExceeded, InvalidValue
 from lab.core.kernels import bands, in_parallel, workers
-from lab.modules.splatting._kernels import (_bin_kernel, _rasterize_backward_kernel,
-                                            _rasterize_forward_kernel, alpha_floor_exponents, pack_pairs)
-from lab.modules.splatting.gaussians import TILE_SIZE, View, activated_opacities, project, view_colors
+from lab.modules.splatting._kernels import (_bin_kernel, _preprocess_kernel, _rasterize_backward_kernel,
+                                            _rasterize_forward_kernel, alpha_floor_exponents,
+                                            kernel_constants, pack_pairs)
+from lab.modules.splatting.gaussians import (DILATION, NEAR_PLANE, TILE_SIZE, View, activated_opacities,
+                                             project, view_colors)
+from lab.modules.splatting.sh import C0, C1, C2, C3, MAX_SH_DEGREE
 from lab.modules.splatting.values import check_count
 
 #: Most (Gaussian, tile) pairs one image may list (about 0.5 GB of sort keys and indices).
@@ -88,8 +91,27 @@ def _numpy(tensor: torch.Tensor) -> np.ndarray:
 
 
 def _tile_bands(binning: Binning) -> list[tuple[int, int]]:
-    """Bands of tiles for the threads: four per worker, so that the busy tiles spread over them."""
-    return bands(binning.tiles_x * binning.tiles_y, parts=4 * workers())
+    """Bands of tiles for the threads: four per worker, so that the busy tiles spread over them; one band
+    (run in the calling thread, no pool) where the process has one CPU."""
+    threads = workers()
+    return bands(binning.tiles_x * binning.tiles_y, parts=1 if threads == 1 else 4 * threads)
+
+
+def _composite(means2d: np.ndarray, conics: np.ndarray, colors: np.ndarray, opacities: np.ndarray,
+               background: np.ndarray, binning: Binning, *, width: int, height: int,
+               tile_size: int) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """The compiled front-to-back compositing of ``binning``'s lists, in the dtype of ``means2d`` (the
+    others in it too): the image (H, W, 3), the transmittance left (H, W), how far into its tile's list
+    each pixel read (H, W) and the packed lists (:func:`._kernels.pack_pairs`)."""
+    packed = pack_pairs(binning.ids, means2d, conics, opacities)
+    image = np.zeros((height, width, 3), means2d.dtype)
+    final_t = np.ones((height, width), means2d.dtype)
+    n_contrib = np.zeros((height, width), np.int64)
+    constants = kernel_constants(means2d.dtype)
+    in_parallel(_rasterize_forward_kernel,
+                [(a, b, binning.ranges, binning.ids, packed, colors, background, constants, tile_size,
+                  binning.tiles_x, image, final_t, n_contrib) for a, b in _tile_bands(binning)])
+    return image, final_t, n_contrib, packed
 
 
 class _Rasterize(torch.autograd.Function):
@@ -102,15 +124,9 @@ class _Rasterize(torch.autograd.Function):
                 tile_size: int) -> torch.Tensor:
         mean, conic, color, opacity, bg = (_numpy(t)
                                            for t in (means2d, conics, colors, opacities, background))
-        packed = pack_pairs(binning.ids, mean, conic, opacity)
-        arrays = (packed, color, bg)
-        image = np.zeros((height, width, 3), mean.dtype)
-        final_t = np.ones((height, width), mean.dtype)
-        n_contrib = np.zeros((height, width), np.int64)
-        in_parallel(_rasterize_forward_kernel,
-                    [(a, b, binning.ranges, binning.ids, *arrays, tile_size, binning.tiles_x, image, final_t,
-                      n_contrib) for a, b in _tile_bands(binning)])
-        ctx.arrays, ctx.binning, ctx.tile_size, ctx.count = arrays, binning, tile_size, len(mean)
+        image, final_t, n_contrib, packed = _composite(mean, conic, color, opacity, bg, binning,
+                                                       width=width, height=height, tile_size=tile_size)
+        ctx.arrays, ctx.binning, ctx.tile_size, ctx.count = (packed, color, bg), binning, tile_size, len(mean)
         ctx.final_t, ctx.n_contrib = final_t, n_contrib
         return torch.from_numpy(image).to(means2d.device)
 
@@ -121,9 +137,10 @@ class _Rasterize(torch.autograd.Function):
         jobs = _tile_bands(binning)
         grads = np.zeros((len(jobs), ctx.count, 9), dtype)
         grad = _numpy(grad_image).astype(dtype, copy=False)
+        constants = kernel_constants(dtype)
         in_parallel(_rasterize_backward_kernel,
-                    [(a, b, binning.ranges, binning.ids, *arrays, ctx.tile_size, binning.tiles_x, ctx.final_t,
-                      ctx.n_contrib, grad, grads[j]) for j, (a, b) in enumerate(jobs)])
+                    [(a, b, binning.ranges, binning.ids, *arrays, constants, ctx.tile_size, binning.tiles_x,
+                      ctx.final_t, ctx.n_contrib, grad, grads[j]) for j, (a, b) in enumerate(jobs)])
         total = torch.from_numpy(grads.sum(axis=0)).to(grad_image.device)
         return (total[:, 0:2], total[:, 2:5], total[:, 5:8], total[:, 8], None, None, None, None, None)
 
@@ -176,4 +193,39 @@ def render(means: torch.Tensor, log_scales: torch.Tensor, quats: torch.Tensor, o
     return Rendering(image, means2d, projected.radii)
 
 
-__all__ = ["MAX_TILE_PAIRS", "Binning", "Rendering", "bin_gaussians", "rasterize_image", "render"]
+def render_image(means: np.ndarray, log_scales: np.ndarray, quats: np.ndarray, opacity_logits: np.ndarray,
+                 sh: np.ndarray, view: View, *, sh_degree: int, background: np.ndarray,
+                 tile_size: int = TILE_SIZE) -> np.ndarray:
+    """:func:`render`'s image ``(H, W, 3)`` float32 without gradients, all compiled (NumPy arrays in, as
+    :class:`.values.SplatModel` holds them): the projection, colours and opacities in one pass
+    (:func:`._kernels._preprocess_kernel`, the formulas of :func:`.gaussians.project` and
+    :func:`.gaussians.view_colors` per Gaussian in float64), then the same binning and float32
+    compositing. torch's overhead per operation on (N,) vectors was a third of a 200 x 200 render of 8k
+    Gaussians. :class:`CapacityExceeded` past :data:`.values.MAX_GAUSSIANS`."""
+    check_count(len(means))
+    if not 0 <= sh_degree <= MAX_SH_DEGREE or sh.shape[1] < (sh_degree + 1) ** 2:
+        raise InvalidValue("sh_degree", f"degree {sh_degree} needs {(sh_degree + 1) ** 2} coefficients per "
+                                        f"channel, got {sh.shape[1]}")
+    n = len(means)
+    means2d, conics, depths = np.empty((n, 2)), np.empty((n, 3)), np.empty(n)
+    radii, rects = np.empty(n, np.int64), np.empty((n, 4), np.int64)
+    colors, opacities = np.empty((n, 3)), np.empty(n)
+    camera = np.concatenate([_numpy(view.R).reshape(9), _numpy(view.t).reshape(3),
+                             [view.fx, view.fy, view.cx, view.cy]]).astype(np.float64)
+    _preprocess_kernel(means, log_scales, quats, opacity_logits, sh, sh_degree, SH_CONSTANTS, camera,
+                       view.width, view.height, tile_size, NEAR_PLANE, DILATION, means2d, conics, depths,
+                       radii, rects, colors, opacities)
+    f4 = np.float32
+    means32, conics32, colors32, opacities32 = (a.astype(f4) for a in (means2d, conics, colors, opacities))
+    binning = bin_gaussians(rects, depths, width=view.width, height=view.height, tile_size=tile_size,
+                            footprints=(means32, conics32, opacities32))
+    image, _, _, _ = _composite(means32, conics32, colors32, opacities32, np.asarray(background, f4),
+                                binning, width=view.width, height=view.height, tile_size=tile_size)
+    return image
+
+
+#: The SH basis constants :func:`._kernels._preprocess_kernel` takes: C0, C1, C2 (5), C3 (7).
+SH_CONSTANTS = np.array([C0, C1, *C2, *C3], np.float64)
+
+__all__ = ["MAX_TILE_PAIRS", "Binning", "Rendering", "bin_gaussians", "rasterize_image", "render",
+           "render_image"]

@@ -334,3 +334,79 @@ def test_a_thin_diagonal_gaussian_leaves_the_tiles_its_square_touches_but_its_el
     drawn = (fast_image - background).abs().amax(dim=-1) > 0
     assert all(drawn[i, i] for i in range(32))                           # along the diagonal
     assert not drawn[0:8, 24:32].any() and not drawn[24:32, 0:8].any()   # listed corner tiles untouched
+
+
+def test_the_compositing_exponential_is_exp_to_float64_precision_over_its_range():
+    """The written-out exponential of the compositing loop (so that it vectorizes) against exp on the
+    exponents an alpha above 1/255 can have, in both dtypes, and outside that range still positive."""
+    from lab.modules.splatting._kernels import _exp_nonpositive, kernel_constants
+
+    x = np.concatenate([np.linspace(-5.6, 0.0, 20001), [-0.0, -1e-300, -math.log(255.0)]])
+    for dtype, tolerance in ((np.float64, 1e-14), (np.float32, 3e-6)):
+        k = kernel_constants(dtype)
+        coefficients = tuple(k[7:21])
+        got = np.array([_exp_nonpositive(dtype(v), k[6], coefficients) for v in x], np.float64)
+        exact = np.exp(x.astype(dtype).astype(np.float64))
+        assert np.max(np.abs(got - exact) / exact) < tolerance, dtype
+    assert 0.0 < _exp_nonpositive(-20.0, 0.125, tuple(kernel_constants(np.float64)[7:21])) < 1e-7
+
+
+def test_footprint_half_heights_reach_every_row_of_the_ellipse():
+    """sqrt(limit Sigma_yy) (widened) bounds |dy| over the ellipse d^T conic d <= limit; a conic that is
+    not positive definite reaches every row, a negative limit none."""
+    from lab.modules.splatting._kernels import footprint_half_heights
+
+    rng = np.random.default_rng(1)
+    L = rng.normal(size=(200, 2, 2)) * rng.uniform(0.05, 1.0, (200, 1, 1))
+    conic = L @ L.transpose(0, 2, 1) + 1e-3 * np.eye(2)
+    limits = rng.uniform(0.0, 12.0, 200)
+    reach = footprint_half_heights(conic[:, [0, 0, 1], [0, 1, 1]], limits)
+    for k in range(200):                        # the ellipse's boundary, sampled densely
+        angles = np.linspace(0.0, 2 * np.pi, 4001)
+        circle = np.stack([np.cos(angles), np.sin(angles)]) * math.sqrt(limits[k])
+        boundary = np.linalg.solve(np.linalg.cholesky(conic[k]).T, circle)   # d with d^T C d = limit
+        assert np.abs(boundary[1]).max() <= reach[k] <= np.abs(boundary[1]).max() + 2e-3
+    not_definite = footprint_half_heights(np.array([[1.0, 2.0, 1.0], [np.nan, 0.0, 1.0]]), np.ones(2))
+    assert np.all(np.isinf(not_definite) & (not_definite > 0))
+    assert footprint_half_heights(np.array([[1.0, 0.0, 1.0]]), np.array([-1.0]))[0] == -np.inf
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_the_compiled_projection_and_colours_are_those_of_the_torch_path(seed):
+    """render_image's one compiled pass (no gradients) gives project's means, conics, depths, radii and tile
+    rectangles and view_colors' colours on the awkward scenes, and its image is the fast path's."""
+    from lab.modules.splatting._kernels import _preprocess_kernel
+
+    scene = random_scene(seed, count=40)
+    view = camera(48, 32)
+    n = 40
+    out = (np.empty((n, 2)), np.empty((n, 3)), np.empty(n), np.empty(n, np.int64), np.empty((n, 4), np.int64),
+           np.empty((n, 3)), np.empty(n))
+    view_row = np.concatenate([view.R.numpy().reshape(9), view.t.numpy(),
+                               [view.fx, view.fy, view.cx, view.cy]])
+    arrays = [scene[k].numpy() for k in NAMES]
+    for degree in (0, 1, 2, 3):
+        _preprocess_kernel(*arrays[:5], degree, RZ.SH_CONSTANTS, view_row, 48, 32, 16, G.NEAR_PLANE,
+                           G.DILATION, *out)
+        with torch.no_grad():
+            projected = G.project(scene["means"], scene["log_scales"], scene["quats"], view)
+            colours = G.view_colors(scene["means"], scene["sh"], degree, view)
+        drawn = projected.radii.numpy() > 0
+        np.testing.assert_allclose(out[0][drawn], projected.means2d.numpy()[drawn], rtol=1e-12, atol=1e-9)
+        np.testing.assert_allclose(out[1][drawn], projected.conics.numpy()[drawn], rtol=1e-10, atol=1e-12)
+        np.testing.assert_allclose(out[2], projected.depths.numpy(), rtol=1e-12)
+        np.testing.assert_array_equal(out[3], projected.radii.numpy())
+        np.testing.assert_array_equal(out[4], projected.rects.numpy())
+        np.testing.assert_allclose(out[5], colours.numpy(), rtol=1e-12, atol=1e-12)
+        np.testing.assert_allclose(out[6], torch.sigmoid(scene["opacity_logits"]).numpy(), rtol=1e-12)
+    assert 0 < drawn.sum() < n                        # culled ones among them
+    background = np.array([0.2, 0.5, 0.9])
+    view32 = G.View(view.R.float(), view.t.float(), view.fx, view.fy, view.cx, view.cy, 48, 32)
+    image = RZ.render_image(*(a.astype(np.float32) for a in arrays), view32, sh_degree=3,
+                            background=background)
+    with torch.no_grad():
+        fast = RZ.render(*(scene[k].float() for k in NAMES), view32, sh_degree=3,
+                         background=torch.tensor(background, dtype=torch.float32)).image.numpy()
+    assert image.dtype == np.float32 and image.shape == (32, 48, 3)
+    assert np.abs(image - fast).max() < 1e-5
+    assert np.abs(image - background).max() > 0.1
