@@ -9,8 +9,9 @@ The package (this file is its only import surface):
 
     gaussians.py   parameters and their activations, Sigma = R S S^T R^T, projection (J W Sigma W^T J^T)
     sh.py          the real spherical harmonics up to degree 3 (view-dependent colour)
-    rasterize.py   the fast rasterizer: tile binning, depth sort, compiled compositing and its backward
-    _kernels.py    the compiled compositing loops (private)
+    rasterize.py   the fast rasterizer: tile binning, depth sort, compiled compositing and its backward;
+                   render_image, the same all compiled for rendering without gradients
+    _kernels.py    the compiled loops: compositing (vectorized), its backward, binning, projection (private)
     reference.py   the readable per-Gaussian, per-pixel rasterizer in torch autograd: the tests' oracle
     values.py      SplatModel: the Gaussians' raw parameters between steps (drawn as GaussianSplats)
     losses.py      0.8 L1 + 0.2 D-SSIM
@@ -21,12 +22,13 @@ The package (this file is its only import surface):
     ply.py         the standard 3D Gaussian splatting PLY (the INRIA layout), written and read
     datasets.py    the synthetic object with surface points to start from
     basics.py      BASICS, lesson 06's pipeline: SH colour, Sigma', alphas, compositing, one step each
-Datasets and evaluation are the NeRF module's (the same scenes, the same held-out PSNR and SSIM), plus
-the synthetic object with points (``object_with_points``).
+Datasets and evaluation are the NeRF module's (the same scenes, the same held-out PSNR and SSIM, and
+``sfm_reconstruction``: the SfM module's exported reconstruction, its registered views and its points to
+start from), plus the synthetic object with points (``object_with_points``).
 
 State names:
     images, cameras, test_cameras, bounds   the NeRF module's datasets' (training views, held-out poses)
-    sfm_points      PointCloud      points to start from (object_with_points; optional)
+    sfm_points      PointCloud      points to start from (object_with_points, sfm_reconstruction; optional)
     gaussians       SplatModel      the initial Gaussians
     splats          GaussianSplats  them drawn; train_splats replaces it by the trained ones
     model           SplatModel      the trained Gaussians
@@ -50,7 +52,7 @@ from pathlib import Path
 from typing import Any
 
 from lab.core import Export, MissingInput, Pipeline
-from lab.modules.nerf import EVALUATIONS, nerf_synthetic, synthetic_object
+from lab.modules.nerf import EVALUATIONS, nerf_synthetic, sfm_reconstruction, synthetic_object
 from lab.modules.nerf import EXPORTS as NERF_EXPORTS
 from lab.modules.splatting.basics import BASICS
 from lab.modules.splatting.contributions import PixelContributions, pixel_contributions
@@ -105,7 +107,7 @@ PIPELINE = Pipeline.build(
             "compared (PSNR, SSIM) on the NeRF module's scenes, the Gaussians of a clicked pixel listed, "
             "novel views along an orbit, and the standard splat PLY exported.",
     steps=[initialize_gaussians, train_splats, render_held_out, render_view, render_path],
-    datasets=[synthetic_object, object_with_points, nerf_synthetic],
+    datasets=[synthetic_object, object_with_points, nerf_synthetic, sfm_reconstruction],
     evaluations=EVALUATIONS,
     exports=EXPORTS,
     views=VIEWS,

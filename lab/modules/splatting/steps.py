@@ -28,7 +28,7 @@ from lab.core import (Cameras, Curve, GaussianSplats, Image, ImageSet, InvalidCo
 from lab.modules.nerf import SceneBounds, orbit_path, training_views
 from lab.modules.splatting.contributions import PixelContributions, pixel_contributions
 from lab.modules.splatting.gaussians import view_of
-from lab.modules.splatting.rasterize import render
+from lab.modules.splatting.rasterize import render, render_image
 from lab.modules.splatting.sh import C0, MAX_SH_DEGREE
 from lab.modules.splatting.training import SplatTrainingOptions, SplatTrainingRun, train_gaussians
 from lab.modules.splatting.values import SplatModel, as_model, check_count
@@ -74,6 +74,7 @@ def initialize_gaussians(bounds: SceneBounds, sfm_points: PointCloud | None = No
                          source: Literal["auto", "random", "points"] = "auto",
                          points: Annotated[int, Range(4, 200000)] = 1000,
                          opacity: Annotated[float, Range(0.001, 0.99)] = 0.1,
+                         fill_random: bool = True,
                          rng: np.random.Generator) -> InitResult:
     """The first Gaussians (Kerbl et al. 2023, section 5; the code's ``create_from_pcd``): at the points of
     a reconstruction where the dataset brings them (``sfm_points``, the paper's start from COLMAP's sparse
@@ -84,12 +85,18 @@ def initialize_gaussians(bounds: SceneBounds, sfm_points: PointCloud | None = No
     control adds Gaussians where the views need them (measured on the synthetic object, 30 s of training:
     1000 points 27.5 dB held-out after 668 iterations, 5000 points 13.4 dB after 69).
 
-    The box is the cube of half-side ``bounds.radius`` about ``bounds.center``.
+    The box is the cube of half-side ``bounds.radius`` about ``bounds.center``. Where the dataset brings
+    fewer than ``points`` points, ``fill_random`` draws the rest at random in the box (the paper's random
+    start beside the reconstruction's): a sparse reconstruction covers a smooth object unevenly (the SfM
+    module's 447 points of the object scene lie on its textured faces), and the density control is slow
+    to grow Gaussians where none started; the random ones that find nothing to explain are pruned.
 
     Args:
         source: "points" the dataset's points, "random" the box, "auto" the points where there are some.
-        points: Gaussians to start from (at most; fewer where the dataset has fewer points).
+        points: Gaussians to start from.
         opacity: their initial opacity.
+        fill_random: fill up to ``points`` with random points of the box where the dataset has fewer
+            (off: only the dataset's points).
     """
     if not isinstance(bounds, SceneBounds):
         raise InvalidValue("bounds", f"expected SceneBounds, got {type(bounds).__name__}")
@@ -97,11 +104,13 @@ def initialize_gaussians(bounds: SceneBounds, sfm_points: PointCloud | None = No
         raise InvalidValue("sfm_points", f"expected a PointCloud, got {type(sfm_points).__name__}")
     if source == "points" and sfm_points is None:
         raise InvalidControl("source", "this dataset brings no points to start from: choose random or auto")
+    xyz, colors = np.zeros((0, 3)), np.zeros((0, 3))
     if source != "random" and sfm_points is not None:
         xyz, colors = _drawn_points(sfm_points, points, rng)
-    else:
-        xyz = bounds.center + bounds.radius * rng.uniform(-1.0, 1.0, (points, 3))
-        colors = rng.uniform(0.0, 1.0, (points, 3))
+    if len(xyz) == 0 or (fill_random and len(xyz) < points):
+        more = points - len(xyz)
+        xyz = np.concatenate([xyz, bounds.center + bounds.radius * rng.uniform(-1.0, 1.0, (more, 3))])
+        colors = np.concatenate([colors, rng.uniform(0.0, 1.0, (more, 3))])
     model = initial_model(xyz, colors, opacity=opacity)
     return InitResult(model, model.splats(), len(model), float(np.exp(model.log_scales).mean()))
 
@@ -241,7 +250,12 @@ def _curves(run: SplatTrainingRun) -> tuple[Curve, Curve, Curve]:
 def render_model(model: SplatModel, cameras: Cameras, index: int, *, device: str = "cpu") -> np.ndarray:
     """Camera ``index`` of ``cameras`` rendered from ``model`` (no gradient): RGB float32 ``(H, W, 3)`` in
     [0, 1]."""
-    t = as_model(model, "model").tensors(device=device)
+    model = as_model(model, "model")
+    if torch.device(device).type == "cpu":           # all compiled (rasterize.render_image)
+        pixels = render_image(model.means, model.log_scales, model.quats, model.opacity_logits, model.sh,
+                              view_of(cameras, index), sh_degree=model.sh_degree, background=model.background)
+        return np.clip(pixels, 0.0, 1.0)
+    t = model.tensors(device=device)
     with torch.no_grad():
         image = render(t["means"], t["log_scales"], t["quats"], t["opacity_logits"], t["sh"],
                        view_of(cameras, index, device=device), sh_degree=model.sh_degree,

@@ -69,9 +69,25 @@ def test_source_points_needs_points_and_random_ignores_them(trained):
     with pytest.raises(InvalidValue, match="sfm_points"):
         S.initialize_gaussians(state["bounds"], state["images"], points=50, rng=rng)
     few = S.initialize_gaussians(state["bounds"], PointCloud(state["sfm_points"].xyz[:20]), points=50,
-                                 rng=rng)
+                                 fill_random=False, rng=rng)
     assert len(few.gaussians) == 20
     np.testing.assert_allclose(S.sh_to_rgb(torch.as_tensor(few.gaussians.sh[:, 0])).numpy(), 0.5, atol=1e-6)
+
+
+def test_too_few_points_are_filled_with_random_points_of_the_scene_box(trained):
+    """20 points of the cloud and 30 drawn in the box (the default): the cloud's first, in grey, then
+    random ones, inside the cube of half-side radius about the centre and off the cloud."""
+    state, rng = trained.state, np.random.default_rng(0)
+    bounds, cloud = state["bounds"], PointCloud(state["sfm_points"].xyz[:20])
+    filled = S.initialize_gaussians(bounds, cloud, points=50, rng=rng).gaussians
+    assert len(filled) == 50
+    np.testing.assert_array_equal(filled.means[:20], cloud.xyz.astype(np.float32))
+    extra = filled.means[20:]
+    assert np.all(np.abs(extra - bounds.center) <= bounds.radius * (1 + 1e-6))
+    assert not (extra[:, None] == cloud.xyz[None].astype(np.float32)).all(axis=2).any()
+    assert np.ptp(S.sh_to_rgb(torch.as_tensor(filled.sh[20:, 0])).numpy()) > 0.5     # random colours
+    enough = S.initialize_gaussians(bounds, cloud, points=20, rng=rng).gaussians
+    np.testing.assert_array_equal(enough.means, cloud.xyz.astype(np.float32))
 
 
 def test_a_pixels_gaussians_rebuild_the_rendered_pixel(trained):

@@ -53,7 +53,8 @@ def test_pipeline_steps_in_order():
     assert [s.name for s in PIPELINE.steps] == ["initialize_gaussians", "train_splats", "render_held_out",
                                                 "render_view", "render_path"]
     assert PIPELINE.step("train_splats").is_generator and PIPELINE.step("render_path").is_generator
-    assert [d.name for d in PIPELINE.datasets] == ["synthetic_object", "object_with_points", "nerf_synthetic"]
+    assert [d.name for d in PIPELINE.datasets] == ["synthetic_object", "object_with_points", "nerf_synthetic",
+                                                   "sfm_reconstruction"]
     written = {name for spec in PIPELINE.steps for name in spec.writes}
     assert PIPELINE.views <= written | {"images", "cameras", "test_cameras", "bounds"}
     assert {"ply", "gif"} <= set(PIPELINE.exports)
@@ -233,3 +234,33 @@ def test_training_refuses_views_that_do_not_fit_their_cameras(session):
     with pytest.raises(InvalidValue, match="one camera per training view"):
         next(S.train_splats(state["gaussians"], state["images"], state["test_cameras"], **TINY,
                             rng=np.random.default_rng(0)))
+
+
+def test_an_sfm_reconstruction_opens_and_its_points_start_the_gaussians(tmp_path):
+    """The NeRF module's sfm_reconstruction dataset (an SfM export read back) in splatting's pipeline: its
+    registered views train, its sparse points (in their colours) are where the Gaussians start."""
+    from lab.core import Session
+    from lab.data.exports import write_reconstruction
+    from lab.data.reconstruction import SparseModel
+    from lab.geometry.camera import project_points
+    from lab.modules.nerf.datasets import _read_split, object_scene, write_nerf_synthetic
+
+    reference = write_nerf_synthetic(str(tmp_path / "scene"), object_scene(0), size=32, views=(5, 1, 2))
+    _, train = _read_split(reference, "train", 100, 1)
+    points = np.random.default_rng(0).uniform(-0.4, 0.4, (30, 3))
+    keypoints = [project_points(points, k, None, r, t)
+                 for k, r, t in zip(train.K, train.R, train.t, strict=True)]
+    model = SparseModel.from_tracks(
+        train.K, np.tile([train.width, train.height], (len(train), 1)), train.R, train.t,
+        [f"r_{i}.png" for i in range(len(train))], keypoints, points, np.full((30, 3), 200, np.uint8),
+        np.zeros(30), [np.column_stack([np.arange(len(train)), np.full(len(train), p)]) for p in range(30)])
+    sparse = str(write_reconstruction(str(tmp_path / "sparse"), model, "colmap"))
+    loaded = PIPELINE.dataset("sfm_reconstruction").load(
+        {"path": sparse, "images": str(tmp_path / "scene" / "train"), "reference": reference})
+    session = Session(PIPELINE, loaded, dataset="sfm_reconstruction", seed=0)
+    init = session.run("initialize_gaussians", {"source": "points", "points": 30})
+    assert init.status == "ok", init.error
+    gaussians = session.state["gaussians"]
+    np.testing.assert_allclose(np.sort(gaussians.means, axis=0), np.sort(points, axis=0), atol=1e-5)
+    np.testing.assert_allclose(S.sh_to_rgb(torch.as_tensor(gaussians.sh[:, 0])).numpy(), 200 / 255, atol=1e-5)
+    assert session.run("train_splats", {"iterations": 3, "budget_seconds": 0.0}).status == "ok"
