@@ -7,7 +7,7 @@ tile after another instead of one CUDA block per tile. The forward pass computes
 :func:`kernel_constants`, since a Python float literal would make the arithmetic float64). Within a tile
 it goes Gaussian by Gaussian through its depth-sorted list, each pixel keeping its own transmittance,
 colour, last contributor and whether it is done; each Gaussian updates the rows of the tile that its
-ellipse where alpha can reach 1/255 spans (:func:`footprint_half_heights`), all their pixels in one loop
+ellipse where alpha can reach 1/255 spans (:func:`footprint_half_extents`), all their pixels in one loop
 without branches: the per-pixel decisions (inside the footprint, alpha >= 1/255, T would fall below
 1e-4, done) are selects, and the exponential is written out (:func:`_exp_nonpositive`, a C ``exp`` call
 would not vectorize), so the compiler runs the loop on vector lanes, 8 float32 pixels at a time. The
@@ -52,29 +52,31 @@ def alpha_floor_exponents(opacities: np.ndarray) -> np.ndarray:
 
 
 def pack_pairs(ids: np.ndarray, means2d: np.ndarray, conics: np.ndarray, opacities: np.ndarray) -> np.ndarray:
-    """``(pairs, 8)`` in the dtype of ``means2d``: per listed Gaussian ``ids[k]`` its mean (2), conic (3),
+    """``(pairs, 9)`` in the dtype of ``means2d``: per listed Gaussian ``ids[k]`` its mean (2), conic (3),
     opacity, :func:`alpha_floor_exponents` (an exponent below which its alpha is surely under 1/255) and
-    :func:`footprint_half_heights` (how far above and below its mean that ellipse reaches), laid out in
-    list order so the kernels read them one after the other."""
+    :func:`footprint_half_extents` (how far that ellipse reaches from its mean: above and below, left and
+    right), laid out in list order so the kernels read them one after the other."""
     skip = alpha_floor_exponents(opacities)
-    reach = footprint_half_heights(conics, -2.0 * skip)
+    reach = footprint_half_extents(conics, -2.0 * skip)
     dtype = means2d.dtype
     table = np.concatenate([means2d, conics, opacities[:, None], skip[:, None].astype(dtype),
-                            reach[:, None].astype(dtype)], axis=1)
+                            reach.astype(dtype)], axis=1)
     return np.ascontiguousarray(table[ids])
 
 
-def footprint_half_heights(conics: np.ndarray, limits: np.ndarray) -> np.ndarray:
-    """(N,) float64: the half-height ``sqrt(limit Sigma_yy)`` of each ellipse ``d^T conic d <= limit``
-    (``Sigma_yy = a / (a c - b^2)``, the conic's inverse), widened by a millionth and 1e-3 px so that
-    rounding (float32 included) never leaves a row of it out; ``inf`` (every row) where the conic is not
-    positive definite in float64 or not finite, ``-inf`` (none) for a negative limit."""
+def footprint_half_extents(conics: np.ndarray, limits: np.ndarray) -> np.ndarray:
+    """(N, 2) float64: the half-height ``sqrt(limit Sigma_yy)`` and half-width ``sqrt(limit Sigma_xx)`` of
+    each ellipse ``d^T conic d <= limit`` (``Sigma = [[c, -b], [-b, a]] / (a c - b^2)``, the conic's
+    inverse), widened by a millionth and 1e-3 px so that rounding (float32 included) never leaves a row or
+    a column of it out; ``inf`` (everywhere) where the conic is not positive definite in float64 or not
+    finite, ``-inf`` (nowhere) for a negative limit."""
     a, b, c = (conics[:, k].astype(np.float64) for k in range(3))
     det = a * c - b * b
+    limits = np.asarray(limits, np.float64)
     with np.errstate(all="ignore"):
-        reach = np.sqrt(np.asarray(limits, np.float64) * a / det) * (1.0 + 1e-6) + 1e-3
-        definite = (a > 0.0) & (det > 0.0) & np.isfinite(reach)
-    return np.where(np.asarray(limits) < 0.0, -np.inf, np.where(definite, reach, np.inf))
+        reach = np.sqrt(limits[:, None] * np.stack([a, c], axis=1) / det[:, None]) * (1.0 + 1e-6) + 1e-3
+        definite = (a > 0.0) & (det > 0.0) & np.isfinite(reach).all(axis=1)
+    return np.where((limits < 0.0)[:, None], -np.inf, np.where(definite[:, None], reach, np.inf))
 
 
 @kernel
@@ -211,6 +213,11 @@ def kernel_constants(dtype: type | np.dtype) -> np.ndarray:
     return np.array(values + [1.0 / math.factorial(k) for k in range(14)], dtype)
 
 
+#: Columns of a tile's block (the forward kernel's state is stored block by block, so that a Gaussian updates
+#: only the blocks its footprint reaches: 8 float32 lanes of a 256-bit vector).
+BLOCK = 8
+
+
 @kernel
 def _rasterize_forward_kernel(tile_start: int, tile_stop: int, ranges: np.ndarray, ids: np.ndarray,
                               packed: np.ndarray, colors: np.ndarray, background: np.ndarray,
@@ -218,23 +225,26 @@ def _rasterize_forward_kernel(tile_start: int, tile_stop: int, ranges: np.ndarra
                               final_t: np.ndarray, n_contrib: np.ndarray) -> None:
     """Composite tiles ``tile_start .. tile_stop`` (row-major) into ``image`` (H, W, 3); ``final_t`` (H, W)
     the transmittance left, ``n_contrib`` (H, W) how far into its tile's list each pixel read (1 past its
-    last contributor). ``packed`` (pairs, 8) holds each listed Gaussian's mean, conic, opacity, the
-    exponent below which its alpha is surely under 1/255 and the half-height of that ellipse
-    (:func:`pack_pairs`), in list order; ``constants`` is :func:`kernel_constants` of the dtype the
+    last contributor). ``packed`` (pairs, 9) holds each listed Gaussian's mean, conic, opacity, the
+    exponent below which its alpha is surely under 1/255 and the half-height and half-width of that
+    ellipse (:func:`pack_pairs`), in list order; ``constants`` is :func:`kernel_constants` of the dtype the
     arithmetic runs in (the inputs').
 
     Gaussian by Gaussian through the tile's list, each pixel keeping its own transmittance, colour, last
-    contributor and whether it is done; each Gaussian updates the rows of the tile its ellipse reaches,
-    all their pixels in one branch-free loop (the decisions as selects, so it runs on vector lanes), the
-    per-pixel arithmetic and its order the paper's per-pixel loop's. A pixel is done at the Gaussian that
-    would take its transmittance below 1e-4, the tile when all its pixels are."""
+    contributor and whether it is done. The tile's state is stored in blocks of :data:`BLOCK` columns, row
+    after row within a block; each Gaussian updates, in each block its ellipse's columns reach, the rows
+    its ellipse spans, all their pixels in one branch-free loop (the decisions as selects, so it runs on
+    vector lanes), the per-pixel arithmetic and its order the paper's per-pixel loop's. A pixel is done at
+    the Gaussian that would take its transmittance below 1e-4, the tile when all its pixels are (the
+    padding of a block past the image's edge starts done)."""
     height, width = final_t.shape
     zero, half, one = constants[0], constants[1], constants[2]
     alpha_max, alpha_min, t_min, sixteenth = constants[3], constants[4], constants[5], constants[6]
     c = (constants[7], constants[8], constants[9], constants[10], constants[11], constants[12],
          constants[13], constants[14], constants[15], constants[16], constants[17], constants[18],
          constants[19], constants[20])
-    size, dtype = tile_size * tile_size, constants.dtype
+    blocks = (tile_size + BLOCK - 1) // BLOCK
+    size, dtype = blocks * BLOCK * tile_size, constants.dtype
     # the tile's state, one array each (allocated here: the compiler then knows they do not overlap)
     trans, red, green = np.empty(size, dtype), np.empty(size, dtype), np.empty(size, dtype)
     blue, done = np.empty(size, dtype), np.empty(size, dtype)        # done: 1 once T would fall below 1e-4
@@ -243,12 +253,15 @@ def _rasterize_forward_kernel(tile_start: int, tile_stop: int, ranges: np.ndarra
         ty, tx = tile // tiles_x, tile % tiles_x
         x0, y0 = tx * tile_size, ty * tile_size
         x1, y1 = min(width, x0 + tile_size), min(height, y0 + tile_size)
-        tw = x1 - x0
-        alive = tw * (y1 - y0)
-        for j in range(alive):
-            trans[j], red[j], green[j], blue[j], done[j], last[j] = one, zero, zero, zero, zero, 0
-            xs[j] = x0 + j % tw
-            ys[j] = y0 + j // tw
+        th = y1 - y0
+        stride = th * BLOCK                          # one block: th rows of BLOCK columns
+        alive = (x1 - x0) * th
+        for j in range(blocks * stride):
+            column = (j // stride) * BLOCK + j % BLOCK
+            trans[j], red[j], green[j], blue[j], last[j] = one, zero, zero, zero, 0
+            done[j] = zero if x0 + column < x1 else one
+            xs[j] = x0 + column
+            ys[j] = y0 + (j % stride) // BLOCK
         start, stop = ranges[tile, 0], ranges[tile, 1]
         for k in range(start, stop):
             if alive == 0:
@@ -258,43 +271,47 @@ def _rasterize_forward_kernel(tile_start: int, tile_stop: int, ranges: np.ndarra
                 continue
             mx, my, ca, cb, cc, opacity = (packed[k, 0], packed[k, 1], packed[k, 2], packed[k, 3],
                                            packed[k, 4], packed[k, 5])
-            reach = packed[k, 7]
-            i = ids[k]
-            red_i, green_i, blue_i = colors[i, 0], colors[i, 1], colors[i, 2]
-            low, high = np.floor(my - reach), np.ceil(my + reach)      # NaN or infinite: every row
+            low, high = np.floor(my - packed[k, 7]), np.ceil(my + packed[k, 7])   # NaN or inf: every row
             first = y0 if not low > y0 else (y1 if low > y1 else int(low))
             after = y1 if not high + 1 < y1 else (y0 if high + 1 < y0 else int(high) + 1)
-            if first >= after:
+            low, high = np.floor(mx - packed[k, 8]), np.ceil(mx + packed[k, 8])
+            left = x0 if not low > x0 else (x1 if low > x1 else int(low))
+            right = x1 if not high + 1 < x1 else (x0 if high + 1 < x0 else int(high) + 1)
+            if first >= after or left >= right:
                 continue
-            lo, hi = (first - y0) * tw, (after - y0) * tw
-            # the rows as views from their first pixel (indices from 0: the loop then vectorizes)
-            t_, r_, g_, b_ = trans[lo:hi], red[lo:hi], green[lo:hi], blue[lo:hi]
-            d_, l_, x_, y_ = done[lo:hi], last[lo:hi], xs[lo:hi], ys[lo:hi]
+            i = ids[k]
+            red_i, green_i, blue_i = colors[i, 0], colors[i, 1], colors[i, 2]
             order = k - start + 1
             ended = 0
-            for j in range(hi - lo):
-                dx = mx - x_[j]
-                dy = my - y_[j]
-                power = -half * (ca * dx * dx + cc * dy * dy) - cb * dx * dy
-                inside = (skip <= power) & (power <= zero)
-                alpha = min(alpha_max, opacity * _exp_nonpositive(power if inside else zero, sixteenth, c))
-                T = t_[j]
-                next_t = T * (one - alpha)
-                live = inside & (alpha >= alpha_min) & (d_[j] == zero)
-                ends = live & (next_t < t_min)
-                used = live & (next_t >= t_min)
-                weight = alpha * T if used else zero
-                r_[j] += red_i * weight
-                g_[j] += green_i * weight
-                b_[j] += blue_i * weight
-                t_[j] = next_t if used else T
-                l_[j] = order if used else l_[j]
-                d_[j] = one if ends else d_[j]
-                ended += 1 if ends else 0
+            for block in range((left - x0) // BLOCK, (right - 1 - x0) // BLOCK + 1):
+                lo, hi = block * stride + (first - y0) * BLOCK, block * stride + (after - y0) * BLOCK
+                # the rows as views from their first pixel (indices from 0: the loop then vectorizes)
+                t_, r_, g_, b_ = trans[lo:hi], red[lo:hi], green[lo:hi], blue[lo:hi]
+                d_, l_, x_, y_ = done[lo:hi], last[lo:hi], xs[lo:hi], ys[lo:hi]
+                for j in range(hi - lo):
+                    dx = mx - x_[j]
+                    dy = my - y_[j]
+                    power = -half * (ca * dx * dx + cc * dy * dy) - cb * dx * dy
+                    inside = (skip <= power) & (power <= zero)
+                    G = _exp_nonpositive(power if inside else zero, sixteenth, c)
+                    alpha = min(alpha_max, opacity * G)
+                    T = t_[j]
+                    next_t = T * (one - alpha)
+                    live = inside & (alpha >= alpha_min) & (d_[j] == zero)
+                    ends = live & (next_t < t_min)
+                    used = live & (next_t >= t_min)
+                    weight = alpha * T if used else zero
+                    r_[j] += red_i * weight
+                    g_[j] += green_i * weight
+                    b_[j] += blue_i * weight
+                    t_[j] = next_t if used else T
+                    l_[j] = order if used else l_[j]
+                    d_[j] = one if ends else d_[j]
+                    ended += 1 if ends else 0
             alive -= ended
         for py in range(y0, y1):
             for px in range(x0, x1):
-                j = (py - y0) * tw + px - x0
+                j = ((px - x0) // BLOCK) * stride + (py - y0) * BLOCK + (px - x0) % BLOCK
                 T = trans[j]
                 image[py, px, 0] = red[j] + T * background[0]
                 image[py, px, 1] = green[j] + T * background[1]
@@ -514,7 +531,14 @@ def _warm_up() -> None:
     _bin_kernel(ids, np.array([[0, 0, 1, 1]], np.int64), np.full((1, 2), 4.0), np.array([[0.2, 0.0, 0.2]]),
                 np.ones(1), True, 16, 8, 8, 1, np.zeros((1, 2), np.int64), np.zeros(1, np.int64),
                 np.zeros(1, np.bool_))
+    quats = np.array([[1.0, 0.0, 0.0, 0.0]], f4)
+    camera = np.array([1, 0, 0, 0, 1, 0, 0, 0, 1, 0, 0, 0, 8, 8, 4, 4], np.float64)
+    _preprocess_kernel(np.array([[0.0, 0.0, 2.0]], f4), np.full((1, 3), -2.0, f4), quats, np.zeros(1, f4),
+                       np.zeros((1, 16, 3), f4), 3, np.ones(14), camera, 8, 8, 16, 0.2, 0.3, np.empty((1, 2)),
+                       np.empty((1, 3)), np.empty(1), np.empty(1, np.int64), np.empty((1, 4), np.int64),
+                       np.empty((1, 3)), np.empty(1))
 
 
-register_warm_up("splatting", ["train_splats", "render_held_out", "render_view"],
-                 [_rasterize_forward_kernel, _rasterize_backward_kernel, _bin_kernel], _warm_up)
+register_warm_up("splatting", ["train_splats", "render_held_out", "render_view", "render_path"],
+                 [_rasterize_forward_kernel, _rasterize_backward_kernel, _bin_kernel, _preprocess_kernel],
+                 _warm_up)

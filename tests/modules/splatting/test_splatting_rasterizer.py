@@ -351,24 +351,28 @@ def test_the_compositing_exponential_is_exp_to_float64_precision_over_its_range(
     assert 0.0 < _exp_nonpositive(-20.0, 0.125, tuple(kernel_constants(np.float64)[7:21])) < 1e-7
 
 
-def test_footprint_half_heights_reach_every_row_of_the_ellipse():
-    """sqrt(limit Sigma_yy) (widened) bounds |dy| over the ellipse d^T conic d <= limit; a conic that is
-    not positive definite reaches every row, a negative limit none."""
-    from lab.modules.splatting._kernels import footprint_half_heights
+def test_footprint_half_extents_reach_every_row_and_column_of_the_ellipse():
+    """sqrt(limit Sigma_yy) and sqrt(limit Sigma_xx) (widened) bound |dy| and |dx| over the ellipse
+    d^T conic d <= limit; a conic that is not positive definite reaches everywhere, a negative limit
+    nowhere."""
+    from lab.modules.splatting._kernels import footprint_half_extents
 
     rng = np.random.default_rng(1)
     L = rng.normal(size=(200, 2, 2)) * rng.uniform(0.05, 1.0, (200, 1, 1))
     conic = L @ L.transpose(0, 2, 1) + 1e-3 * np.eye(2)
     limits = rng.uniform(0.0, 12.0, 200)
-    reach = footprint_half_heights(conic[:, [0, 0, 1], [0, 1, 1]], limits)
+    reach = footprint_half_extents(conic[:, [0, 0, 1], [0, 1, 1]], limits)
+    assert reach.shape == (200, 2)
+    angles = np.linspace(0.0, 2 * np.pi, 4001)
     for k in range(200):                        # the ellipse's boundary, sampled densely
-        angles = np.linspace(0.0, 2 * np.pi, 4001)
         circle = np.stack([np.cos(angles), np.sin(angles)]) * math.sqrt(limits[k])
         boundary = np.linalg.solve(np.linalg.cholesky(conic[k]).T, circle)   # d with d^T C d = limit
-        assert np.abs(boundary[1]).max() <= reach[k] <= np.abs(boundary[1]).max() + 2e-3
-    not_definite = footprint_half_heights(np.array([[1.0, 2.0, 1.0], [np.nan, 0.0, 1.0]]), np.ones(2))
+        for axis, column in ((1, 0), (0, 1)):                                 # dy: half-height first
+            extent = np.abs(boundary[axis]).max()
+            assert extent <= reach[k, column] <= extent + 2e-3
+    not_definite = footprint_half_extents(np.array([[1.0, 2.0, 1.0], [np.nan, 0.0, 1.0]]), np.ones(2))
     assert np.all(np.isinf(not_definite) & (not_definite > 0))
-    assert footprint_half_heights(np.array([[1.0, 0.0, 1.0]]), np.array([-1.0]))[0] == -np.inf
+    assert np.all(footprint_half_extents(np.array([[1.0, 0.0, 1.0]]), np.array([-1.0])) == -np.inf)
 
 
 @pytest.mark.parametrize("seed", [0, 1, 2])
