@@ -4,26 +4,27 @@ binning, and the projection and colours for rendering without gradients.
 They follow the paper's code (Kerbl et al. 2023, ``renderCUDA`` in ``forward.cu`` and ``backward.cu``), one
 tile after another instead of one CUDA block per tile. The forward pass computes in the dtype of its inputs
 (float32 to train and render, float64 in the tests; its constants come as an array of that dtype,
-:func:`kernel_constants`, since a Python float literal would make the arithmetic float64). Within a tile
-it goes Gaussian by Gaussian through its depth-sorted list, each pixel keeping its own transmittance,
-colour, last contributor and whether it is done; each Gaussian updates the rows of the tile that its
-ellipse where alpha can reach 1/255 spans (:func:`footprint_half_extents`), all their pixels in one loop
-without branches: the per-pixel decisions (inside the footprint, alpha >= 1/255, T would fall below
-1e-4, done) are selects, and the exponential is written out (:func:`_exp_nonpositive`, a C ``exp`` call
-would not vectorize), so the compiler runs the loop on vector lanes, 8 float32 pixels at a time. The
-per-pixel arithmetic and its order are the paper's per-pixel loop's. Measured on a trained model (8k
-Gaussians, 200 x 200, one core): 7.3 ms for the earlier scalar walk over each row's chord of the ellipse
-(about 13 ns a visited pixel, mostly mispredicted branches at the chords' ends and the C ``exp``), 4.2 ms
-for the vectorized rows although they visit 3.6x as many pixels. The backward pass walks each pixel's list
-back to front from its last contributor over the rows' chords (:func:`_row_span`, the exact-footprint
-culling of "StopThePop", Radl et al. 2024, and gsplat's tile intersection, done per row), recovering
-``T_i`` by dividing by ``1 - alpha_i`` and the colour behind each Gaussian as a running sum, as the
-paper's code does, with the forward pass's arithmetic for every decision so the two agree on each pixel;
+:func:`kernel_constants`, since a Python float literal would make the arithmetic float64). Within a tile it
+goes Gaussian by Gaussian through its depth-sorted list, each pixel keeping its own transmittance, colour,
+last contributor and whether it is done, stored in blocks of 8 columns; each Gaussian updates, in the blocks
+its ellipse where alpha can reach 1/255 reaches, the rows that ellipse spans
+(:func:`footprint_half_extents`), all their pixels in one loop without branches: the per-pixel decisions
+(inside the footprint, alpha >= 1/255, T would fall below 1e-4, done) are selects, and the exponential is
+written out (:func:`_exp_nonpositive`, a C ``exp`` call would not vectorize), so the compiler runs the loop
+on vector lanes, 8 float32 pixels at a time. The per-pixel arithmetic and its order are the paper's
+per-pixel loop's. Measured on a trained model (8k Gaussians, 200 x 200, one core): 7.3 ms for the earlier
+scalar walk over each row's chord of the ellipse (about 13 ns a visited pixel, mostly mispredicted branches
+at the chords' ends and the C ``exp``), 4.2 ms for vectorized whole tile rows although they visit 3.6x as
+many pixels, about 13 % less again with the 8-column blocks (28 % fewer lanes). The backward pass walks each
+pixel's list back to front from its last contributor over the rows' chords (:func:`_row_span`, the
+exact-footprint culling of "StopThePop", Radl et al. 2024, and gsplat's tile intersection, done per row),
+recovering ``T_i`` by dividing by ``1 - alpha_i`` and the colour behind each Gaussian as a running sum, as
+the paper's code does, with the forward pass's arithmetic for every decision so the two agree on each pixel;
 unlike that code, it takes the clamp ``alpha <= 0.99`` into account (no gradient through a clamped alpha:
 gsplat does the same), so it is the derivative autograd gives the reference. Gradients are summed per
-Gaussian over a tile, then into one buffer per band of tiles (bands run on different threads). Each
-tile's list comes packed in list order (:func:`pack_pairs`: reads one after the other instead of
-gathers), with an exponent below which a Gaussian's alpha is surely under 1/255.
+Gaussian over a tile, then into one buffer per band of tiles (bands run on different threads). Each tile's
+list comes packed in list order (:func:`pack_pairs`: reads one after the other instead of gathers), with an
+exponent below which a Gaussian's alpha is surely under 1/255.
 """
 
 from __future__ import annotations
