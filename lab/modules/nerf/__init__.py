@@ -38,6 +38,8 @@ State names:
     cameras         Cameras         their cameras (carrying ``images``)
     test_cameras    Cameras         the held-out poses
     bounds          SceneBounds     near / far depths, the centre and radius positions are normalized by
+    pixel_supersample int           rays per pixel along each axis a dataset's pixel is the mean of (held-out
+                                    views are rendered so; absent: one ray through each pixel centre)
     rays            RayBundle       one ray per training pixel, with its colour
     ray_lines       Segments3D      a few of them, near to far, in their pixel's colour
     encoding        EncodingConfig  L for positions and directions, identity or not

@@ -4,7 +4,9 @@ layout.
 Each gives the state ``images`` (:class:`ImageSet`, the training views), ``cameras`` (their
 :class:`Cameras`, OpenCV convention, carrying the images), ``test_cameras`` (the held-out poses: a
 novel view is rendered from a pose, so poses are inputs) and ``bounds``
-(:class:`~lab.modules.nerf.values.SceneBounds`); the held-out images (``test_images`` ``(V, H, W, 3)``)
+(:class:`~lab.modules.nerf.values.SceneBounds`) and ``pixel_supersample`` (an int: how many rays per
+pixel along each axis each image's pixel is the mean of, so that ``render_held_out`` renders pixels the
+same way); the held-out images (``test_images`` ``(V, H, W, 3)``)
 and, for the synthetic object, their exact depths (``test_depths`` ``(V, H, W)``, inf where the ray
 misses) are truth.
 """
@@ -33,6 +35,9 @@ WHITE = (1.0, 1.0, 1.0)
 OBJECT_FOV_DEG = 40.0
 #: Distance of the synthetic object's cameras from its centre.
 OBJECT_DISTANCE = 3.0
+#: Rays per pixel along each axis with which the synthetic object's images are rendered (each pixel the
+#: mean of 2 x 2): its ``pixel_supersample``, which held-out renders follow.
+OBJECT_SUPERSAMPLE = 2
 
 
 def object_scene(seed: int = 0) -> Scene:
@@ -135,8 +140,8 @@ def synthetic_object(*, size: Literal[100, 200] = 100, train_views: Annotated[in
 
     Training and held-out cameras lie on the upper hemisphere at 3 m, looking at the object (the
     NeRF-synthetic setup); held-out views sit between training views. Each view is rendered with 2 x 2
-    supersampling; depths are exact at pixel centres. ``bounds``: near and far at 3 m minus and plus
-    the object's bounding radius, which also normalizes positions.
+    supersampling (``pixel_supersample`` 2); depths are exact at pixel centres. ``bounds``: near and far
+    at 3 m minus and plus the object's bounding radius, which also normalizes positions.
 
     Args:
         size: image width and height in pixels.
@@ -150,12 +155,13 @@ def synthetic_object(*, size: Literal[100, 200] = 100, train_views: Annotated[in
     radius = float(0.5 * np.linalg.norm(upper - lower))
     train = hemisphere_cameras(train_views, size=size, distance=OBJECT_DISTANCE, offset=0.0, center=center)
     test = hemisphere_cameras(test_views, size=size, distance=OBJECT_DISTANCE, offset=0.5, center=center)
-    train_renders = [render(scene, train, i) for i in range(train_views)]
-    test_renders = [render(scene, test, i) for i in range(test_views)]
+    train_renders = [render(scene, train, i, supersample=OBJECT_SUPERSAMPLE) for i in range(train_views)]
+    test_renders = [render(scene, test, i, supersample=OBJECT_SUPERSAMPLE) for i in range(test_views)]
     images = ImageSet(tuple(Image(r.image.pixels, name=f"train {i}") for i, r in enumerate(train_renders)))
     reach = 1.05 * radius
     bounds = SceneBounds(OBJECT_DISTANCE - reach, OBJECT_DISTANCE + reach, center, reach)
-    state = {"images": images, "cameras": _carrying(train, "images"), "test_cameras": test, "bounds": bounds}
+    state = {"images": images, "cameras": _carrying(train, "images"), "test_cameras": test, "bounds": bounds,
+             "pixel_supersample": OBJECT_SUPERSAMPLE}
     truth = {"test_images": np.stack([r.image.pixels for r in test_renders]),
              "test_depths": np.stack([r.depth for r in test_renders]),
              "train_depths": np.stack([r.depth for r in train_renders])}
@@ -259,8 +265,9 @@ def nerf_synthetic(*, path: str, downscale: Annotated[int, Range(1, 16)] = 8,
 
     The files are read by the lab's one ``transforms.json`` reader (OpenGL camera-to-world turned into
     OpenCV world-to-camera, the principal point moved to the lab's pixel centres); images are
-    composited on white and shrunk ``downscale`` times by area averaging (800 px / 8 = 100 px). The
-    held-out images are the test split. The scene lies within ``radius`` of the origin.
+    composited on white and shrunk ``downscale`` times by area averaging (800 px / 8 = 100 px), so each
+    pixel is the mean of ``downscale x downscale`` of the file's (``pixel_supersample``). The held-out
+    images are the test split. The scene lies within ``radius`` of the origin.
 
     Args:
         path: the folder holding the transforms files.
@@ -279,11 +286,13 @@ def nerf_synthetic(*, path: str, downscale: Annotated[int, Range(1, 16)] = 8,
                                    f"{train.width}x{train.height}")
     bounds = SceneBounds(near, far, np.zeros(3), radius)
     images = ImageSet(tuple(Image(im, name=f"train {i}") for i, im in enumerate(train_images)))
-    state = {"images": images, "cameras": _carrying(train, "images"), "test_cameras": test, "bounds": bounds}
+    state = {"images": images, "cameras": _carrying(train, "images"), "test_cameras": test, "bounds": bounds,
+             "pixel_supersample": int(downscale)}
     return Loaded(state, {"test_images": np.stack(test_images)},
                   f"{len(train_images)} training and {len(test_images)} held-out "
                   f"{train.width}x{train.height} views from {folder}")
 
 
-__all__ = ["BLENDER_DISTANCE", "OBJECT_DISTANCE", "OBJECT_FOV_DEG", "WHITE", "hemisphere_cameras",
-           "nerf_synthetic", "object_scene", "synthetic_object", "untuned_scene", "write_nerf_synthetic"]
+__all__ = ["BLENDER_DISTANCE", "OBJECT_DISTANCE", "OBJECT_FOV_DEG", "OBJECT_SUPERSAMPLE", "WHITE",
+           "hemisphere_cameras", "nerf_synthetic", "object_scene", "synthetic_object", "untuned_scene",
+           "write_nerf_synthetic"]

@@ -173,3 +173,41 @@ def test_written_untuned_scene_reads_back_as_the_renderer_supersampled_it(tmp_pa
         read = loaded.state["images"].images[i].pixels
         assert np.abs(read - expected).max() < 2.5 / 255
     assert not np.allclose(loaded.state["images"].images[0].pixels, 1.0)    # the object is in view
+
+
+def test_held_out_rays_sample_each_pixel_as_the_dataset_made_it(small):
+    """The synthetic object's pixels are 2 x 2 supersampled (``pixel_supersample``), and render_held_out's
+    default takes that factor: the exact scene rendered one ray per pixel at twice the resolution
+    (scaled_cameras, the rays render_held_out casts) and box-filtered is the truth itself, where one ray
+    through each pixel centre is not (about 30 dB)."""
+    from lab.modules.nerf.model import ImageRendering
+    from lab.modules.nerf.steps import held_out_supersample
+
+    state, truth = small.state, small.truth
+    factor = held_out_supersample(0, state["pixel_supersample"])
+    assert state["pixel_supersample"] == factor == 2
+    scene = N.object_scene(0)
+    fine = N.scaled_cameras(state["test_cameras"], factor)
+    for i in range(2):
+        rendered = render(scene, fine, i, supersample=1)
+        pixels = ImageRendering(rendered.image.pixels, rendered.depth, rendered.mask.astype(np.float32))
+        area = pixels.box_filtered(factor).color
+        np.testing.assert_allclose(area, truth["test_images"][i], atol=2e-6)
+        centres = render(scene, state["test_cameras"], i, supersample=1).image.pixels
+        assert N.image_psnr(centres, truth["test_images"][i]) < 33.0
+
+
+def test_held_out_supersampling_follows_the_dataset_unless_told(blender_folder):
+    from lab.modules.nerf.steps import MAX_HELD_OUT_SUPERSAMPLE, held_out_supersample
+
+    folder = str(blender_folder[0])
+    assert N.nerf_synthetic(path=folder, downscale=2).state["pixel_supersample"] == 2
+    assert N.nerf_synthetic(path=folder, downscale=1).state["pixel_supersample"] == 1
+    assert held_out_supersample(0, None) == 1                     # a dataset that does not say: centres
+    assert held_out_supersample(0, 3) == 3 and held_out_supersample(1, 3) == 1
+    assert held_out_supersample(2, None) == 2
+    assert held_out_supersample(0, 8) == MAX_HELD_OUT_SUPERSAMPLE == 4
+    for bad in (0, -2, 1.5, True):
+        with pytest.raises(InvalidValue) as info:
+            held_out_supersample(0, bad)
+        assert info.value.field == "pixel_supersample"

@@ -257,3 +257,32 @@ def test_box_filtering_a_rendering_averages_its_blocks():
     assert fine.box_filtered(1).color is not None and np.allclose(fine.box_filtered(1).depth, fine.depth)
     with pytest.raises(InvalidValue, match="3x3 blocks"):
         fine.box_filtered(3)
+
+
+def test_total_variation_is_the_mean_gradient_norm_of_forward_differences():
+    """total_variation at every vertex against a loop over vertices (the last face's vertices take the
+    differences of the face before), and its gradient pulls a spike towards its neighbours."""
+    from lab.modules.nerf.grid import total_variation
+
+    r = 5
+    values = np.random.default_rng(4).normal(0, 2, (r, r, r, 4))
+    field = N.GridField(r, torch.as_tensor(values[..., 0], dtype=torch.float32),
+                        torch.as_tensor(values[..., 1:], dtype=torch.float32))
+    tv_sigma, tv_rgb = (v.detach() for v in total_variation(field, torch.arange(r ** 3)))
+    norms = []
+    for i in range(r):
+        for j in range(r):
+            for k in range(r):
+                a, b, c = min(i, r - 2), min(j, r - 2), min(k, r - 2)
+                here = values[a, b, c]
+                steps = np.stack([values[a + 1, b, c], values[a, b + 1, c], values[a, b, c + 1]]) - here
+                norms.append(np.sqrt((steps ** 2).sum(axis=0) + 1e-8))
+    norms = np.array(norms)
+    assert float(tv_sigma) == pytest.approx(norms[:, 0].mean(), rel=1e-5)
+    assert float(tv_rgb) == pytest.approx(norms[:, 1:].sum(axis=1).mean(), rel=1e-5)
+    spike = N.GridField(r, torch.zeros(r, r, r), torch.zeros(r, r, r, 3))
+    with torch.no_grad():
+        spike.table[(2 * r + 2) * r + 2, 0] = 5.0
+    total_variation(spike, torch.arange(r ** 3))[0].backward()
+    assert spike.table.grad is not None and float(spike.table.grad[(2 * r + 2) * r + 2, 0]) > 0
+    assert float(spike.table.grad[:, 1:].abs().sum()) == 0.0
