@@ -139,7 +139,8 @@ def sfm_reconstruction(*, path: str, images: str = "", reference: str = "",
         images: the folder holding the model's images (default: images/ in ``path`` or beside it).
         reference: a NeRF-synthetic-layout folder with the true cameras of the training images and the
             held-out views (default: none; every ``test_every``-th image is held out).
-        downscale: integer factor the images are shrunk by (area averaging).
+        downscale: integer factor the images are shrunk by (area averaging; the state's
+            ``pixel_supersample``, as :func:`~lab.modules.nerf.nerf_synthetic` gives it).
         test_every: without a reference, hold out images 0, test_every, 2 test_every, ...
         test_views: with a reference, at most this many held-out views (its first ones).
         percentile: the points' box spans this to 100 - this percentile on each axis.
@@ -173,7 +174,9 @@ def sfm_reconstruction(*, path: str, images: str = "", reference: str = "",
     cameras = Cameras(K[train], R[train], t[train], width, height)
     state = {"images": ImageSet(tuple(Image(pixels[i], name=model.names[i]) for i in train)),
              "cameras": _carrying(cameras, "images"), "test_cameras": test, "bounds": bounds,
-             "sfm_points": PointCloud(model.points, model.colors.astype(np.float64) / 255.0)}
+             "sfm_points": PointCloud(model.points, model.colors.astype(np.float64) / 255.0),
+             # each pixel is the area mean of downscale x downscale photo pixels: held-out renders follow it
+             "pixel_supersample": int(downscale)}
     truth["test_images"] = np.stack(test_images)
     held_from = (f"the reference {reference!r} aligned by Umeyama" if reference
                  else f"every {test_every}th image")

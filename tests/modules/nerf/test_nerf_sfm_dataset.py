@@ -54,6 +54,7 @@ def test_held_out_cameras_come_into_the_sfm_frame_by_the_alignment(reference, tm
     assert truth["alignment"].scale == pytest.approx(1.0 / SFM_FRAME.scale)
     assert truth["train_center_error"] < 1e-9
     assert truth["test_images"].shape == (3, 32, 32, 3)
+    assert state["pixel_supersample"] == 1  # read at full size: one ray through each pixel centre
     assert len(state["images"]) == 6 and state["cameras"].image == "images"
     assert state["images"].names[0] == "r_0.png" and len(state["sfm_points"]) == 40
     bounds = state["bounds"]
@@ -74,6 +75,8 @@ def test_without_a_reference_every_nth_image_is_held_out_with_its_sfm_pose(refer
     assert loaded.state["images"].names == ("r_1.png", "r_2.png", "r_3.png", "r_5.png")
     assert loaded.state["cameras"].width == 16 and loaded.truth["test_images"].shape == (2, 16, 16, 3)
     np.testing.assert_allclose(loaded.state["cameras"].K[0, 0, 0], true_train.K[0, 0, 0] / 2)
+    # each pixel is the mean of 2 x 2 photo pixels: held-out renders are area-averaged the same way
+    assert loaded.state["pixel_supersample"] == 2
 
 
 def test_bad_input_is_named(reference, tmp_path):
