@@ -30,6 +30,8 @@ from __future__ import annotations
 
 import contextlib
 import math
+import threading
+import time
 from collections.abc import Callable, Iterable, Mapping
 from dataclasses import dataclass, field, replace
 from typing import Any
@@ -396,11 +398,45 @@ class Drawn:
     #: The renderer that drew it (set by :class:`StateDrawer`: only it can :meth:`Renderer.redraw` it).
     renderer: Renderer | None = None
 
+    #: When it was drawn (``time.monotonic()``): a GUI picture removed within :data:`GUI_SETTLE_S` of its
+    #: drawing is hidden at once and removed later (see :meth:`remove`).
+    drawn_at: float = field(default_factory=time.monotonic)
+
     def remove(self) -> None:
+        """Remove the handles; a GUI picture or folder drawn under :data:`GUI_SETTLE_S` ago is hidden now
+        and removed once that time has passed: viser's client applies a frame's GUI updates after the
+        frame's adds and removes, so a picture added (an add, then its picture as an update) and removed
+        within one frame of a slow page gets its update after its removal ("Tried to update non-existent
+        component", issue 16: splatting's render steps end within milliseconds of each other)."""
+        young = time.monotonic() - self.drawn_at < GUI_SETTLE_S
+        later = [h for h in self.handles if young and _is_gui_picture_or_folder(h)]
         for handle in reversed(self.handles):
             with contextlib.suppress(Exception):  # already gone with its parent (a removed folder / node)
-                handle.remove()
+                if handle in later:
+                    handle.visible = False
+                else:
+                    handle.remove()
         self.handles.clear()
+        if later:
+            timer = threading.Timer(GUI_SETTLE_S, _remove_all, args=(later,))
+            timer.daemon = True
+            timer.start()
+
+
+#: Seconds a GUI picture or folder lives at least before it is removed (hidden meanwhile): more than a
+#: frame of a slow page (a software-rendered browser draws a few frames a second).
+GUI_SETTLE_S = 1.0
+
+
+def _is_gui_picture_or_folder(handle: Any) -> bool:
+    kind = type(handle)
+    return kind.__module__.startswith("viser") and kind.__name__ in ("GuiImageHandle", "GuiFolderHandle")
+
+
+def _remove_all(handles: list[Any]) -> None:
+    for handle in reversed(handles):
+        with contextlib.suppress(Exception):  # gone already (the client left, its parent removed)
+            handle.remove()
 
 
 def _node(name: str) -> str:

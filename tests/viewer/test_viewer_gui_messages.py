@@ -13,6 +13,7 @@ update no element it removes, every picture and chart keeping its element from t
 
 from __future__ import annotations
 
+import time
 from collections.abc import Generator
 from dataclasses import dataclass, field
 
@@ -24,6 +25,7 @@ from lab.core import Curve, Image, ImageSet, Loaded, Pipeline, Points2D, Progres
 from lab.core.step import step_result
 from lab.viewer.app import ClientView, ModuleCatalog
 from lab.viewer.plots import set_uplot
+from lab.viewer import renderers
 from lab.viewer.renderers import Canvas, StateDrawer
 
 
@@ -98,6 +100,12 @@ def gray(value: float, name: str = "", size: tuple[int, int] = (20, 30)) -> Imag
     return Image(np.full(size, value, np.float32), name)
 
 
+@pytest.fixture(autouse=True)
+def removed_at_once(monkeypatch):
+    """A removal's messages without the settling time of a picture just drawn (tested alone below)."""
+    monkeypatch.setattr(renderers, "GUI_SETTLE_S", 0.0)
+
+
 # --- the drawer: a new value changes its element ----------------------------------------------------------
 def test_new_values_change_the_pictures_and_charts_in_place(server, gui_messages):
     drawer = StateDrawer(Canvas(scene=server.scene, gui=server.gui))
@@ -153,6 +161,24 @@ def test_a_value_gone_is_removed_once_and_never_updated_after(server, gui_messag
     drawer.sync({})
     assert gui_messages.updates_of_the_removed() == []
     assert len(gui_messages.removed()) == len(set(gui_messages.removed()))
+
+
+def test_a_picture_removed_just_after_its_drawing_is_hidden_then_removed_never_updated_after(
+        server, gui_messages, monkeypatch):
+    monkeypatch.setattr(renderers, "GUI_SETTLE_S", 0.3)  # a slow page's frame: its add and its picture update
+    drawer = StateDrawer(Canvas(scene=server.scene, gui=server.gui))
+    drawer.sync({"photo": gray(0.5), "views": ImageSet((gray(0.0), gray(1.0)))})
+    photo = drawer.drawn["photo"].parts["image"]
+    start = gui_messages.mark()
+    drawer.sync({})  # dropped within a frame of its drawing (splatting's render steps end milliseconds apart)
+    assert gui_messages.removed(start) == [] and not photo.visible  # hidden at once, still there
+    deadline = time.monotonic() + 10
+    while photo._impl.uuid not in gui_messages.removed(start) and time.monotonic() < deadline:
+        time.sleep(0.05)
+    assert photo._impl.uuid in gui_messages.removed(start)
+    removed = gui_messages.removed(start)
+    assert len(removed) == len(set(removed)) == 4  # the photo, the folder, its slider and its picture
+    assert gui_messages.updates_of_the_removed() == []
 
 
 def test_set_uplot_sends_what_changed_never_a_series_without_its_data(server, gui_messages):
