@@ -30,7 +30,7 @@ import numpy as np
 import torch
 
 from lab.core import InvalidValue, Loaded, Pipeline, Range, step_result
-from lab.modules.splatting.gaussians import DILATION
+from lab.modules.splatting.gaussians import DILATION, covariances
 from lab.modules.splatting.reference import ALPHA_MAX, ALPHA_MIN, T_MIN
 from lab.modules.splatting.sh import sh_colors
 
@@ -111,13 +111,7 @@ def project_covariances(means: np.ndarray, log_scales: np.ndarray, quats: np.nda
     norms = np.linalg.norm(q, axis=1, keepdims=True)
     if np.any(norms == 0):
         raise InvalidValue("quats", "a quaternion of length 0 is no rotation")
-    w, x, y, z = (q / norms).T
-    Rq = np.stack([1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y),
-                   2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x),
-                   2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)], axis=1)
-    Rq = Rq.reshape(-1, 3, 3)
-    M = Rq * np.exp(log_s)[:, None, :]                                            # R_q S
-    sigma = M @ np.swapaxes(M, 1, 2)
+    sigma = covariances(torch.as_tensor(log_s), torch.as_tensor(q)).numpy()     # R_q S S^T R_q^T (eq. 6)
     p = mu @ R.T + t
     if np.any(p[:, 2] <= 0):
         raise InvalidValue("means", "a Gaussian is behind the camera (camera z <= 0): it has no projection")

@@ -24,14 +24,14 @@ from typing import Any
 import numpy as np
 import torch
 
-from lab.core import CapacityExceeded, InvalidValue
+from lab.core import CapacityExceeded
 from lab.core.kernels import bands, in_parallel, workers
 from lab.modules.splatting._kernels import (_bin_kernel, _preprocess_kernel, _rasterize_backward_kernel,
                                             _rasterize_forward_kernel, alpha_floor_exponents,
                                             kernel_constants, pack_pairs)
 from lab.modules.splatting.gaussians import (DILATION, NEAR_PLANE, TILE_SIZE, View, activated_opacities,
                                              project, view_colors)
-from lab.modules.splatting.sh import C0, C1, C2, C3, MAX_SH_DEGREE
+from lab.modules.splatting.sh import C0, C1, C2, C3, check_sh
 from lab.modules.splatting.values import check_count
 
 #: Most (Gaussian, tile) pairs one image may list (about 0.5 GB of sort keys and indices).
@@ -203,9 +203,7 @@ def render_image(means: np.ndarray, log_scales: np.ndarray, quats: np.ndarray, o
     compositing. torch's overhead per operation on (N,) vectors was a third of a 200 x 200 render of 8k
     Gaussians. :class:`CapacityExceeded` past :data:`.values.MAX_GAUSSIANS`."""
     check_count(len(means))
-    if not 0 <= sh_degree <= MAX_SH_DEGREE or sh.shape[1] < (sh_degree + 1) ** 2:
-        raise InvalidValue("sh_degree", f"degree {sh_degree} needs {(sh_degree + 1) ** 2} coefficients per "
-                                        f"channel, got {sh.shape[1]}")
+    check_sh(sh_degree, sh.shape[1])
     n = len(means)
     means2d, conics, depths = np.empty((n, 2)), np.empty((n, 3)), np.empty(n)
     radii, rects = np.empty(n, np.int64), np.empty((n, 4), np.int64)

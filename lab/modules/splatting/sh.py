@@ -26,6 +26,16 @@ def sh_count(degree: int) -> int:
     return (degree + 1) ** 2
 
 
+def check_sh(degree: int, coefficients: int) -> None:
+    """Refuse a degree outside ``0 .. MAX_SH_DEGREE`` or fewer than its ``(degree + 1)^2`` coefficients per
+    channel (``coefficients``)."""
+    if not 0 <= degree <= MAX_SH_DEGREE:
+        raise InvalidValue("sh_degree", f"must be 0 to {MAX_SH_DEGREE}, got {degree}")
+    if coefficients < sh_count(degree):
+        raise InvalidValue("sh", f"degree {degree} needs {sh_count(degree)} coefficients per channel, got "
+                                 f"{coefficients}")
+
+
 def sh_basis(directions: torch.Tensor, degree: int) -> torch.Tensor:
     """The real spherical harmonics ``Y_k(d)`` ``(N, (degree + 1)^2)`` at unit directions ``d`` (N, 3)."""
     return torch.stack(_basis_terms(directions, degree), dim=-1)
@@ -33,8 +43,7 @@ def sh_basis(directions: torch.Tensor, degree: int) -> torch.Tensor:
 
 def _basis_terms(directions: torch.Tensor, degree: int) -> list[torch.Tensor]:
     """:func:`sh_basis`'s columns, each (N,)."""
-    if not 0 <= degree <= MAX_SH_DEGREE:
-        raise InvalidValue("sh_degree", f"must be 0 to {MAX_SH_DEGREE}, got {degree}")
+    check_sh(degree, sh_count(degree))
     x, y, z = directions.unbind(-1)
     terms = [torch.full_like(x, C0)]
     if degree >= 1:
@@ -53,9 +62,7 @@ def sh_colors(sh: torch.Tensor, directions: torch.Tensor, degree: int) -> torch.
     """RGB ``(N, 3)`` = ``max(0, sum_k sh[:, k] Y_k(d) + 0.5)`` over the first ``(degree + 1)^2`` of the
     coefficients ``sh`` (N, K, 3) (K >= that count)."""
     count = sh_count(degree)
-    if sh.shape[-2] < count:
-        raise InvalidValue("sh", f"degree {degree} needs {count} coefficients per channel, got "
-                                 f"{sh.shape[-2]}")
+    check_sh(degree, sh.shape[-2])
     terms = _basis_terms(directions, degree)
     total = C0 * sh[:, 0] + 0.5                # Y_0 = C0
     for k in range(1, count):          # term by term: on the CPU faster than one (N, K) x (N, K, 3) product
@@ -73,5 +80,5 @@ def sh_to_rgb(dc: torch.Tensor) -> torch.Tensor:
     return dc * C0 + 0.5
 
 
-__all__ = ["C0", "C1", "C2", "C3", "MAX_SH_DEGREE", "rgb_to_sh", "sh_basis", "sh_colors", "sh_count",
-           "sh_to_rgb"]
+__all__ = ["C0", "C1", "C2", "C3", "MAX_SH_DEGREE", "check_sh", "rgb_to_sh", "sh_basis", "sh_colors",
+           "sh_count", "sh_to_rgb"]
