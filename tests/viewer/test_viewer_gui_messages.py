@@ -165,7 +165,8 @@ def test_a_value_gone_is_removed_once_and_never_updated_after(server, gui_messag
 
 def test_a_picture_removed_just_after_its_drawing_is_hidden_then_removed_never_updated_after(
         server, gui_messages, monkeypatch):
-    monkeypatch.setattr(renderers, "GUI_SETTLE_S", 0.3)  # a slow page's frame: its add and its picture update
+    # longer than a slow page's frame, and than a cold first drawing takes (the photo must still be young)
+    monkeypatch.setattr(renderers, "GUI_SETTLE_S", 2.0)
     drawer = StateDrawer(Canvas(scene=server.scene, gui=server.gui))
     drawer.sync({"photo": gray(0.5), "views": ImageSet((gray(0.0), gray(1.0)))})
     photo = drawer.drawn["photo"].parts["image"]
