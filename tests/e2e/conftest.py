@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import os
 import time
+from pathlib import Path
 from typing import Any
 from collections.abc import Callable
 
@@ -272,6 +273,33 @@ def unfold(page: Any, label: Any, inside: str) -> Any:
         except Exception:  # folded again or redrawn: try once more
             continue
     return target
+
+
+@pytest.hookimpl(hookwrapper=True)
+def pytest_runtest_makereport(item, call):
+    """A failed browser test leaves what its pages showed: a screenshot of each open page in ``test-output/
+    failures/`` and the end of each page's text in the report (CI prints it: the log is all it keeps)."""
+    outcome = yield
+    report = outcome.get_result()
+    if report.when != "call" or not report.failed:
+        return
+    browser = item.funcargs.get("browser") or item.funcargs.get("shared_browser")
+    if browser is None:
+        return
+    folder = Path(__file__).resolve().parents[2] / "test-output" / "failures"
+    folder.mkdir(parents=True, exist_ok=True)
+    shown = []
+    for c, context in enumerate(browser.contexts):
+        for p, page in enumerate(context.pages):
+            name = f"{item.name}-{c}-{p}"
+            try:
+                page.screenshot(path=str(folder / f"{name}.png"), timeout=10_000)
+                text = page.inner_text("body", timeout=10_000)
+            except Exception as exc:  # the page may be gone or hung: say so, keep the test's own failure
+                text = f"(could not read the page: {exc})"
+            shown.append(f"--- page {name} ({page.url}), last 3000 characters of its text:\n{text[-3000:]}")
+    if shown:
+        report.sections.append(("what the browser showed", "\n".join(shown)))
 
 
 @pytest.fixture(scope="module")
