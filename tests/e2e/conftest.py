@@ -258,23 +258,6 @@ def lab_api(lab_server) -> LabAPI:
     return LabAPI(lab_server[0])
 
 
-def unfold(page: Any, label: Any, inside: str) -> Any:
-    """The GUI folder whose title matches ``label`` (text or pattern), unfolded by a click on its title (again
-    if the GUI was redrawn meanwhile) until ``inside`` (a locator in the folder) is visible; returns that
-    locator (still hidden after five tries: the caller's wait or assertion reports it)."""
-    title = page.get_by_text(label).first
-    target = title.locator("xpath=..").locator(inside).first
-    for _ in range(5):
-        if target.is_visible():
-            break
-        title.click(timeout=WAIT_MS)  # a page busy drawing (software WebGL, a loaded machine) is slow
-        try:
-            target.wait_for(state="visible", timeout=3000)
-        except Exception:  # folded again or redrawn: try once more
-            continue
-    return target
-
-
 @pytest.hookimpl(hookwrapper=True)
 def pytest_runtest_makereport(item, call):
     """A failed browser test leaves what its pages showed: a screenshot of each open page in ``test-output/

@@ -47,6 +47,23 @@ def free_port() -> int:
         return sock.getsockname()[1]
 
 
+def unfold(page: Any, label: Any, inside: str) -> Any:
+    """The GUI folder whose title matches ``label`` (text or pattern), unfolded by a click on its title (again
+    if the GUI was redrawn meanwhile) until ``inside`` (a locator in the folder) is visible; returns that
+    locator (still hidden after five tries: the caller's wait or assertion reports it)."""
+    title = page.get_by_text(label).first
+    target = title.locator("xpath=..").locator(inside).first
+    for _ in range(5):
+        if target.is_visible():
+            break
+        title.click(timeout=TIMEOUT_MS)  # a page busy drawing (software WebGL, a loaded machine) is slow
+        try:
+            target.wait_for(state="visible", timeout=3000)
+        except Exception:  # folded again or redrawn: try once more
+            continue
+    return target
+
+
 def server_command(port: int, viewer_port: int) -> list[str]:
     return [sys.executable, "-m", "lab", "serve", "--host", "127.0.0.1", "--port", str(port),
             "--viewer-port", str(viewer_port)]
@@ -212,8 +229,6 @@ def test_lesson_mode_shows_the_text_and_compares_a_students_file(lab_server, bro
     # detect the corners, then compare the student's homographies with the reference's
     page.get_by_role("button", name="Run", exact=True).first.click()
     page.get_by_text(re.compile(rf"^1\. {re.escape(first_title)} . done$")).wait_for(timeout=TIMEOUT_MS)
-    from conftest import unfold  # conftest imports this module: not at its top
-
     compare = unfold(page, re.compile(rf"^2\. {re.escape(second_title)} . ready$"),
                      "role=button[name='Compare with reference']")  # open its folder (again if redrawn)
     compare.click(timeout=TIMEOUT_MS)

@@ -10,8 +10,7 @@ from pathlib import Path
 
 import httpx
 import pytest
-from conftest import unfold
-from test_browser import TIMEOUT_MS
+from test_browser import TIMEOUT_MS, unfold
 
 from lab.lessons.format import LessonCatalog
 

@@ -26,7 +26,8 @@ from typing import Any
 
 import httpx
 import pytest
-from conftest import WAIT_MS, ViewerPage, unfold
+from conftest import WAIT_MS, ViewerPage
+from test_browser import unfold
 
 from lab.modules import MODULES, get_pipeline
 
