@@ -2,8 +2,8 @@
 
 The lab server and the browser are the fixtures of ``test_browser.py`` (one per test);
 ``served_lab`` and ``shared_browser`` are the same, one per test module (the server's log must then
-hold no traceback). :func:`unfold` opens a GUI folder by its title as a user does. Here: :class:`ViewerPage`
-(fixture ``viewer_page``) wraps a Playwright page open on the viewer. It finds an interaction's
+hold no traceback); ``unfold`` (in ``test_browser.py``) opens a GUI folder by its title as a user does.
+Here: :class:`ViewerPage` (fixture ``viewer_page``) wraps a Playwright page open on the viewer. It finds an interaction's
 GUI folder by its title, types into the number box beside a labelled slider or vector, picks a
 dropdown option, and reads the 3D scene as the page holds it through viser's end-to-end test hook
 ``window.__viserSceneTree`` (each node's message: type and props) and ``window.__viserMutable``
@@ -15,7 +15,6 @@ from __future__ import annotations
 
 import os
 import time
-from pathlib import Path
 from typing import Any
 from collections.abc import Callable
 
@@ -23,7 +22,7 @@ import cv2
 import httpx
 import numpy as np
 import pytest
-from test_browser import CHROMIUM, CHROMIUM_ARGS, _serve, free_port
+from test_browser import CHROMIUM, CHROMIUM_ARGS, OUTPUT, _serve, free_port
 
 #: How long a page element or scene node may take to appear (ms). Generous: the machine is shared.
 WAIT_MS = 60_000
@@ -269,7 +268,7 @@ def pytest_runtest_makereport(item, call):
     browser = item.funcargs.get("browser") or item.funcargs.get("shared_browser")
     if browser is None:
         return
-    folder = Path(__file__).resolve().parents[2] / "test-output" / "failures"
+    folder = OUTPUT / "failures"
     folder.mkdir(parents=True, exist_ok=True)
     shown = []
     for c, context in enumerate(browser.contexts):
